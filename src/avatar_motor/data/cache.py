@@ -1,0 +1,247 @@
+"""The motion cache: BVH clips converted once onto the canonical body, one array file per dataset.
+
+A cache file `<name>.npz` holds, concatenated over clips at 30 fps:
+    root_pos (N, 3) float32, quats (N, 22, 4) float32, clip_start (C,), clip_len (C,)
+and `meta` (JSON): per clip its source path, member key (for incremental imports), source fps,
+frames, labels, and the retarget info; plus the skipped files with their reasons.
+Writes go through a temporary file and a rename, so an interrupted import never leaves a
+half-written cache.
+"""
+from __future__ import annotations
+
+import hashlib
+
+import json
+import os
+import re
+import tarfile
+import time
+import zipfile
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..io.bvh import BVHError, read_bvh
+from .retarget import resample, retarget
+
+CACHE_VERSION = 1
+_BANDAI = re.compile(r"dataset-(?P<part>\d+)_(?P<content>[a-z\-]+)_(?P<style>[a-z\-]+)_(?P<id>\d+)$")
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("AVATAR_MOTOR_CACHE", Path.home() / ".cache" / "avatar-motor")) / "motion"
+
+
+def labels_from_name(stem: str) -> dict:
+    """Labels from a file name; the Bandai pattern `dataset-N_{content}_{style}_{id}` is understood."""
+    m = _BANDAI.match(stem)
+    if m:
+        return {"content": m["content"], "style": m["style"]}
+    return {}
+
+
+def is_held_out(key: str, fraction: float = 0.05) -> bool:
+    """The fixed evaluation split: a clip is held out when the SHA-1 of its file name (without
+    folders) falls in the lowest `fraction` of the hash range. Stable across machines."""
+    h = int(hashlib.sha1(Path(key).name.encode()).hexdigest()[:8], 16)
+    return h < fraction * 0x100000000
+
+
+@dataclass
+class MotionCache:
+    root_pos: np.ndarray
+    quats: np.ndarray
+    clip_start: np.ndarray
+    clip_len: np.ndarray
+    meta: dict
+    path: Path | None = None
+
+    @property
+    def clips(self) -> list[dict]:
+        return self.meta["clips"]
+
+    def clip(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        s, n = int(self.clip_start[i]), int(self.clip_len[i])
+        return self.root_pos[s:s + n], self.quats[s:s + n]
+
+    def find(self, query: str) -> int:
+        """Index of the clip whose file name contains `query` (exact stem match preferred)."""
+        hits = [i for i, c in enumerate(self.clips) if Path(c["key"]).stem == query]
+        hits = hits or [i for i, c in enumerate(self.clips) if query in c["key"]]
+        if not hits:
+            raise KeyError(f"no clip matching {query!r} in {self.path}; try 'avatar-motor data list'")
+        return hits[0]
+
+    @staticmethod
+    def load(path: str | Path) -> "MotionCache":
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                if meta.get("version") != CACHE_VERSION:
+                    raise ValueError(f"cache version {meta.get('version')} != {CACHE_VERSION}")
+                return MotionCache(z["root_pos"], z["quats"], z["clip_start"], z["clip_len"], meta, path)
+        except (OSError, ValueError, KeyError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: not a readable motion cache ({e}). Delete it and run 'avatar-motor data import' again") from None
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+        try:
+            with open(tmp, "wb") as f:
+                np.savez(f, root_pos=self.root_pos, quats=self.quats, clip_start=self.clip_start,
+                         clip_len=self.clip_len, meta=np.array(json.dumps(self.meta)))
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        self.path = path
+
+
+def _iter_sources(src: Path):
+    """Yield (key, loader) for each BVH in a folder, a file, or a .tar(.xz/.gz)/.zip archive.
+    Archive members are read straight from the archive."""
+    name = src.name.lower()
+    if src.is_dir():
+        for p in sorted(src.rglob("*")):
+            if p.suffix.lower() == ".bvh" and p.is_file():
+                st = p.stat()
+                yield str(p.relative_to(src)), f"{st.st_size}:{int(st.st_mtime)}", (lambda p=p: p.read_bytes())
+    elif name.endswith((".tar", ".tar.xz", ".txz", ".tar.gz", ".tgz", ".tar.bz2")):
+        with tarfile.open(src) as tf:
+            for mem in tf:
+                if mem.isfile() and mem.name.lower().endswith(".bvh"):
+                    data = tf.extractfile(mem).read()
+                    yield mem.name, f"{mem.size}:{int(mem.mtime)}", (lambda d=data: d)
+    elif name.endswith(".zip"):
+        with zipfile.ZipFile(src) as zf:
+            for info in zf.infolist():
+                if info.filename.lower().endswith(".bvh"):
+                    data = zf.read(info)
+                    yield info.filename, f"{info.file_size}:{info.CRC}", (lambda d=data: d)
+    elif src.is_file():
+        st = src.stat()
+        yield src.name, f"{st.st_size}:{int(st.st_mtime)}", (lambda: src.read_bytes())
+    else:
+        raise FileNotFoundError(f"{src}: no such file, folder or archive. Pass a folder of BVH files, a .bvh, or a .tar.xz/.zip of them")
+
+
+def convert_clip(key: str, data: bytes, mapping: dict | None = None, unit: str | None = None):
+    """BVH bytes -> (clip arrays, metadata) or (None, reason)."""
+    try:
+        b = read_bvh(data, name=key)
+        r = resample(retarget(b, mapping, unit), 30.0)
+    except (BVHError, ValueError) as e:
+        return None, str(e)
+    if r.root_pos.shape[0] < 2:
+        return None, f"{key}: only {r.root_pos.shape[0]} frame after resampling to 30 fps; need at least 2"
+    meta = {"key": key, "source_fps": round(b.fps, 4), "source_frames": b.num_frames, "frames": int(r.root_pos.shape[0]),
+            "labels": labels_from_name(Path(key).stem),
+            "info": {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in r.info.items()}}
+    return (r.root_pos, r.quats), meta
+
+
+def _convert_job(args):
+    key, data, mapping, unit = args
+    return key, convert_clip(key, data, mapping, unit)
+
+
+def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Path | None = None,
+                  workers: int | None = None, mapping: dict | None = None, unit: str | None = None,
+                  progress: bool = True) -> tuple[Path, dict]:
+    """Convert every BVH under `src` into the cache `<cache_dir>/<name>.npz` (incremental)."""
+    from tqdm import tqdm
+
+    src = Path(src)
+    if name is None:
+        name = src.name
+        for ext in (".tar.xz", ".tar.gz", ".tar.bz2", ".tgz", ".txz", ".tar", ".zip", ".bvh"):
+            if name.lower().endswith(ext):
+                name = name[: -len(ext)]
+        if name == "data" and src.is_dir():
+            name = src.parent.name
+    cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
+    path = cache_dir / f"{name}.npz"
+    old = MotionCache.load(path) if path.exists() else None
+    have = {c["key"]: (i, c) for i, c in enumerate(old.clips)} if old else {}
+    t0 = time.time()
+    kept, new_items, skipped, seen = [], [], [], set()
+    workers = workers or min(2, os.cpu_count() or 1)
+
+    def jobs():
+        for key, stamp, load in _iter_sources(src):
+            seen.add(key)
+            if key in have and have[key][1].get("stamp") == stamp:
+                kept.append(have[key][0])
+                continue
+            yield key, stamp, load()
+
+    stamps = {}
+    bar = tqdm(desc=f"import {name}", unit="clip", disable=not progress)
+    with ProcessPoolExecutor(workers) as pool:
+        pending = []
+
+        def drain(limit):
+            while len(pending) > limit:
+                key, (res, meta) = pending.pop(0).result()
+                bar.update(1)
+                if res is None:
+                    skipped.append({"key": key, "reason": meta})
+                else:
+                    meta["stamp"] = stamps[key]
+                    new_items.append((res, meta))
+
+        for key, stamp, data in jobs():
+            stamps[key] = stamp
+            pending.append(pool.submit(_convert_job, (key, data, mapping, unit)))
+            drain(4 * workers)
+        drain(0)
+    bar.close()
+    # assemble: kept old clips + new ones, in key order
+    items = []
+    for i in kept:
+        rp, q = old.clip(i)
+        items.append(((rp, q), old.clips[i]))
+    items.extend(new_items)
+    items.sort(key=lambda it: it[1]["key"])
+    if not items:
+        raise ValueError(f"{src}: no clip could be imported ({len(skipped)} skipped"
+                         + (f", first reason: {skipped[0]['reason']}" if skipped else ", no .bvh files found") + ")")
+    lens = np.array([it[0][0].shape[0] for it in items], np.int64)
+    meta = {"version": CACHE_VERSION, "name": name, "source": str(src), "fps": 30.0,
+            "clips": [it[1] for it in items], "skipped": skipped}
+    cache = MotionCache(np.concatenate([it[0][0] for it in items]), np.concatenate([it[0][1] for it in items]),
+                        np.concatenate(([0], np.cumsum(lens)[:-1])), lens, meta)
+    cache.save(path)
+    summary = summarize(cache)
+    summary.update({"new": len(new_items), "unchanged": len(kept), "skipped": skipped, "seconds": time.time() - t0, "path": str(path)})
+    return path, summary
+
+
+def summarize(cache: MotionCache) -> dict:
+    labels: dict[str, dict[str, int]] = {}
+    for c in cache.clips:
+        for k, v in c["labels"].items():
+            labels.setdefault(k, {})
+            labels[k][v] = labels[k].get(v, 0) + 1
+    frames = int(cache.clip_len.sum())
+    return {"clips": len(cache.clips), "frames": frames, "minutes": frames / 30.0 / 60.0, "labels": labels}
+
+
+def format_summary(s: dict) -> str:
+    lines = [f"{s['path']}: {s['clips']} clips ({s.get('new', 0)} new, {s.get('unchanged', 0)} unchanged), "
+             f"{s['frames']} frames = {s['minutes']:.1f} min ({s['minutes'] / 60:.2f} h) at 30 fps, in {s.get('seconds', 0):.1f} s"]
+    for k, counts in s["labels"].items():
+        lines.append(f"  {k}: " + ", ".join(f"{v} {n}" for v, n in sorted(counts.items(), key=lambda kv: -kv[1])))
+    sk = s.get("skipped", [])
+    lines.append(f"  skipped: {len(sk)}")
+    for x in sk:
+        lines.append(f"    {x['reason']}")
+    return "\n".join(lines)
+
+
+def list_caches(cache_dir: str | Path | None = None) -> list[Path]:
+    d = Path(cache_dir) if cache_dir else default_cache_dir()
+    return sorted(p for p in d.glob("*.npz") if not p.name.endswith(".stats.npz"))

@@ -1,0 +1,148 @@
+"""SegmentDataset: canonicalized windows of 1 initial state + N frames, drawn from motion caches.
+
+Each sample: pick a clip and a start frame, take N+2 frames (one extra in front so the initial
+state's backward velocity is real), draw a random body shape (PRIMAL trains with random beta),
+scale the root trajectory by the shape's leg length (MotionPersona Eq. 3), optionally mirror
+left/right, run the one FK, and canonicalize on the initial state. All batched in torch.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import MIRROR, NUM_JOINTS, SHAPE_DIM, forward_kinematics, pelvis_height, random_shapes, rest_offsets
+from .cache import MotionCache, is_held_out
+from .motion_state import FPS, STATE_DIM, canonicalize, finite_velocities, pack
+
+_M = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+
+
+@dataclass
+class SegmentConfig:
+    frames: int = 15  # generated frames per segment (plus 1 initial state)
+    shape_augment: float = 1.0  # std of random body-shape vectors (0 = average body only)
+    mirror: bool = True
+    split: str = "train"  # "train", "heldout" or "all"
+
+
+class SegmentDataset:
+    def __init__(self, caches: list[MotionCache], cfg: SegmentConfig | None = None):
+        self.cfg = cfg or SegmentConfig()
+        need = self.cfg.frames + 2
+        roots, quats, starts, lens, names = [], [], [], [], []
+        offset = 0
+        for cache in caches:
+            for i, clip in enumerate(cache.clips):
+                held = is_held_out(clip["key"])
+                if (self.cfg.split == "train" and held) or (self.cfg.split == "heldout" and not held):
+                    continue
+                rp, q = cache.clip(i)
+                if rp.shape[0] < need:
+                    continue
+                roots.append(rp)
+                quats.append(q)
+                starts.append(offset)
+                lens.append(rp.shape[0])
+                names.append(clip["key"])
+                offset += rp.shape[0]
+        if not roots:
+            raise ValueError(f"no clip of at least {need} frames in split {self.cfg.split!r}; import more motion")
+        self.root_pos = torch.from_numpy(np.concatenate(roots))
+        self.rotmats = rot.quat_to_matrix(torch.from_numpy(np.concatenate(quats)))  # (N, 22, 3, 3)
+        self.clip_start = torch.tensor(starts)
+        self.clip_len = torch.tensor(lens)
+        self.clip_names = names
+        # every valid window start, weighted uniformly over frames
+        self.window_starts = torch.cat([torch.arange(s, s + n - need + 1) for s, n in zip(starts, lens)])
+
+    def __len__(self) -> int:
+        return len(self.window_starts)
+
+    @property
+    def frames_total(self) -> int:
+        return int(self.clip_len.sum())
+
+    def sample(self, batch: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(states (B, 1+N, 267) canonical, shapes (B, SHAPE_DIM)), random windows."""
+        idx = torch.randint(len(self.window_starts), (batch,), generator=generator)
+        return self.windows(self.window_starts[idx], generator)
+
+    def windows(self, starts: torch.Tensor, generator: torch.Generator | None = None,
+                shapes: torch.Tensor | None = None, mirror: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        cfg = self.cfg
+        B, T = len(starts), cfg.frames + 2
+        fr = starts[:, None] + torch.arange(T)
+        root = self.root_pos[fr].double()
+        R = self.rotmats[fr].double()
+        if shapes is None:
+            shapes = random_shapes(B, generator, cfg.shape_augment) if cfg.shape_augment > 0 else torch.zeros(B, SHAPE_DIM)
+        if mirror is None:
+            mirror = (torch.rand(B, generator=generator) < 0.5) if cfg.mirror else torch.zeros(B, dtype=torch.bool)
+        if mirror.any():
+            M = _M.double()
+            root_m = root * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+            R_m = (M @ R @ M)[:, :, MIRROR]
+            root = torch.where(mirror[:, None, None], root_m, root)
+            R = torch.where(mirror[:, None, None, None, None], R_m, R)
+        off = rest_offsets(shapes, torch.float64)  # (B, 22, 3)
+        ratio = pelvis_height(off) / pelvis_height(rest_offsets(None, torch.float64))
+        root = root * ratio[:, None, None]
+        J, _ = forward_kinematics(root, R[:, :, 0], R[:, :, 1:], off[:, None])
+        vel = finite_velocities(J, FPS)[:, 1:]
+        x = pack(root[:, 1:], R[:, 1:, 0], R[:, 1:, 1:], J[:, 1:], vel)
+        xc, _ = canonicalize(x)
+        return xc.float(), shapes.float()
+
+
+@dataclass
+class Normalizer:
+    """Per-dimension mean and std of canonical states (std floored so constant dims stay finite)."""
+    mean: torch.Tensor
+    std: torch.Tensor
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / self.std
+
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        return z * self.std + self.mean
+
+    def to_dict(self) -> dict:
+        return {"mean": self.mean.tolist(), "std": self.std.tolist()}
+
+    @staticmethod
+    def from_dict(d: dict) -> "Normalizer":
+        mean, std = torch.tensor(d["mean"], dtype=torch.float32), torch.tensor(d["std"], dtype=torch.float32)
+        if mean.shape != (STATE_DIM,) or std.shape != (STATE_DIM,) or (std <= 0).any():
+            raise ValueError(f"normalisation statistics must be {STATE_DIM} means and positive stds")
+        return Normalizer(mean, std)
+
+    @staticmethod
+    def compute(ds: SegmentDataset, n: int = 20000, seed: int = 0) -> "Normalizer":
+        g = torch.Generator().manual_seed(seed)
+        xs = torch.cat([ds.sample(min(2000, n), g)[0].reshape(-1, STATE_DIM) for _ in range(max(1, n // 2000))])
+        return Normalizer(xs.mean(0), xs.std(0).clamp_min(1e-2))
+
+
+def stats_path(cache_paths: list[Path]) -> Path:
+    """Statistics live next to the first cache, keyed by the set of caches they cover."""
+    names = "+".join(sorted(Path(p).stem for p in cache_paths))
+    return Path(cache_paths[0]).with_name(f"{names}.stats.json")
+
+
+def load_or_compute_stats(ds: SegmentDataset, cache_paths: list[Path]) -> Normalizer:
+    p = stats_path(cache_paths)
+    if p.exists():
+        try:
+            return Normalizer.from_dict(json.loads(p.read_text()))
+        except (ValueError, json.JSONDecodeError):
+            pass  # recompute below and overwrite the bad file
+    norm = Normalizer.compute(ds)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(norm.to_dict()))
+    tmp.replace(p)
+    return norm

@@ -1,0 +1,150 @@
+"""The 267-d motion state of PRIMAL §3.2 and its canonical frame.
+
+One frame x = (r, phi, theta, J, Jdot):
+    r      root (pelvis) translation, metres                       [0:3]
+    phi    root global rotation, continuous 6D                     [3:9]
+    theta  21 joint rotations relative to their parents, 6D        [9:135]
+    J      22 joint locations, metres                              [135:201]
+    Jdot   22 joint velocities, metres per SECOND, backward        [201:267]
+           differences: Jdot_i = (J_i - J_{i-1}) * fps, so a state carries the momentum with which
+           the body arrived at it (an impulse adds to it).
+
+Canonical frame (after GAMMA, PRIMAL §3.2): origin at the pelvis of the segment's first frame
+projected to the ground (y = 0, so the height above the ground stays visible to the model),
+X left, Y up, Z forward, the facing taken from the hips' left-right axis.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import JOINT_INDEX, NUM_JOINTS, forward_kinematics
+
+STATE_DIM = 267
+FPS = 30.0
+SLICES = {
+    "root_pos": slice(0, 3),
+    "root_rot": slice(3, 9),
+    "local_rot": slice(9, 135),
+    "joints": slice(135, 201),
+    "velocities": slice(201, 267),
+}
+_LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
+
+
+@dataclass
+class Unpacked:
+    root_pos: torch.Tensor  # (..., 3)
+    root_rot: torch.Tensor  # (..., 3, 3)
+    local_rot: torch.Tensor  # (..., 21, 3, 3)
+    joints: torch.Tensor  # (..., 22, 3)
+    velocities: torch.Tensor  # (..., 22, 3)
+
+
+def pack(root_pos, root_rot, local_rot, joints, velocities) -> torch.Tensor:
+    """Matrices in, (..., 267) out."""
+    lead = root_pos.shape[:-1]
+    return torch.cat(
+        (
+            root_pos,
+            rot.matrix_to_6d(root_rot),
+            rot.matrix_to_6d(local_rot).reshape(*lead, 126),
+            joints.reshape(*lead, 66),
+            velocities.reshape(*lead, 66),
+        ),
+        -1,
+    )
+
+
+def unpack(x: torch.Tensor) -> Unpacked:
+    lead = x.shape[:-1]
+    if x.shape[-1] != STATE_DIM:
+        raise ValueError(f"motion state must have {STATE_DIM} values per frame, got {x.shape[-1]}")
+    return Unpacked(
+        x[..., SLICES["root_pos"]],
+        rot.sixd_to_matrix(x[..., SLICES["root_rot"]]),
+        rot.sixd_to_matrix(x[..., SLICES["local_rot"]].reshape(*lead, 21, 6)),
+        x[..., SLICES["joints"]].reshape(*lead, NUM_JOINTS, 3),
+        x[..., SLICES["velocities"]].reshape(*lead, NUM_JOINTS, 3),
+    )
+
+
+def joints_of(x: torch.Tensor) -> torch.Tensor:
+    return x[..., SLICES["joints"]].reshape(*x.shape[:-1], NUM_JOINTS, 3)
+
+
+def velocities_of(x: torch.Tensor) -> torch.Tensor:
+    return x[..., SLICES["velocities"]].reshape(*x.shape[:-1], NUM_JOINTS, 3)
+
+
+def finite_velocities(joints: torch.Tensor, fps: float = FPS, first: torch.Tensor | None = None) -> torch.Tensor:
+    """Backward differences along the frame axis (-3) of joints (..., T, 22, 3), per second.
+
+    `first` is the velocity for frame 0 (e.g. the state's own velocity); by default frame 0 repeats
+    frame 1's velocity."""
+    v = (joints[..., 1:, :, :] - joints[..., :-1, :, :]) * fps
+    v0 = v[..., :1, :, :] if first is None else first[..., None, :, :]
+    return torch.cat((v0, v), -3)
+
+
+def states_from_motion(root_pos, root_rot, local_rot, offsets, fps: float = FPS) -> torch.Tensor:
+    """Full states (..., T, 267) of a motion via the one FK; velocities by backward differences
+    (frame 0 uses forward difference, as nothing precedes it)."""
+    joints, _ = forward_kinematics(root_pos, root_rot, local_rot, offsets[..., None, :, :] if offsets.dim() > 2 else offsets)
+    vel = finite_velocities(joints, fps)
+    return pack(root_pos, root_rot, local_rot, joints, vel)
+
+
+def facing_yaw(joints: torch.Tensor) -> torch.Tensor:
+    """Yaw angle (radians, about +Y, 0 = facing +Z) of the body from its hips' left-right axis."""
+    left = joints[..., _LH, :] - joints[..., _RH, :]
+    # forward = left x up = (-left_z, 0, left_x) for up = +Y
+    return torch.atan2(-left[..., 2], left[..., 0])  # R_Y(yaw) @ (0, 0, 1) = forward
+
+
+@dataclass
+class Transform:
+    """World <- canonical: x_world = R @ x_canon + t (R a yaw rotation)."""
+    R: torch.Tensor  # (..., 3, 3)
+    t: torch.Tensor  # (..., 3)
+
+
+def canonical_transform(x0: torch.Tensor) -> Transform:
+    """The canonical frame of a segment from its first state x0 (..., 267)."""
+    J = joints_of(x0)
+    yaw = facing_yaw(J)
+    t = J[..., 0, :].clone()
+    t[..., 1] = 0.0
+    return Transform(rot.yaw_matrix(yaw), t)
+
+
+def apply_transform(x: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """x' = R x + t applied to every spatial part of states (..., T, 267); R, t have shape (..., 3, 3), (..., 3)."""
+    u = unpack(x)
+    Rf = R[..., None, :, :]  # broadcast over frames
+    tf = t[..., None, :]
+    root_pos = (Rf @ u.root_pos[..., None])[..., 0] + tf
+    root_rot = Rf @ u.root_rot
+    joints = torch.einsum("...ab,...jb->...ja", Rf, u.joints) + tf[..., None, :]
+    vel = torch.einsum("...ab,...jb->...ja", Rf, u.velocities)
+    out = x.clone()
+    lead = x.shape[:-1]
+    out[..., SLICES["root_pos"]] = root_pos
+    out[..., SLICES["root_rot"]] = rot.matrix_to_6d(root_rot)
+    out[..., SLICES["joints"]] = joints.reshape(*lead, 66)
+    out[..., SLICES["velocities"]] = vel.reshape(*lead, 66)
+    return out
+
+
+def canonicalize(states: torch.Tensor) -> tuple[torch.Tensor, Transform]:
+    """states (..., T, 267) in world -> (canonical states, transform); frame 0 defines the frame."""
+    tf = canonical_transform(states[..., 0, :])
+    Rt = tf.R.transpose(-1, -2)
+    return apply_transform(states, Rt, -(Rt @ tf.t[..., None])[..., 0]), tf
+
+
+def to_world(states_c: torch.Tensor, tf: Transform) -> torch.Tensor:
+    """Exact inverse of canonicalize."""
+    return apply_transform(states_c, tf.R, tf.t)

@@ -1,0 +1,291 @@
+"""Retargeting of any BVH skeleton onto the canonical body.
+
+Method: every canonical joint takes the *world* rotation of its source joint times a constant
+rest correction C_j, chosen so that the canonical bone to each child points exactly where the
+source bone points (Kabsch over the children for branching joints). Bone directions are thus
+preserved in the world whatever the two rest poses are; local angles are never copied.
+Canonical joints the source lacks (e.g. a third spine joint) take the slerp of their neighbours'
+world rotations, spreading the bend. The root trajectory is scaled by the ratio of leg lengths,
+and each clip is lifted so that its feet rest on the ground.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import (FOOT_CLEARANCE, JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics,
+                             rest_offsets)
+from ..io.bvh import BVH, BVHError
+
+# canonical joint -> source joint name; a pair means "between these two" (slerped)
+_SIDE = {"left": ("Left", "L"), "right": ("Right", "R")}
+
+
+def _lr(fmt: dict[str, str]) -> dict[str, str]:
+    """Expand '{S}'/'{s}' placeholders for the left and right side."""
+    out = {}
+    for canon, src in fmt.items():
+        if "{" in canon:
+            for side, (long, short) in _SIDE.items():
+                out[canon.format(side=side)] = src.format(S=long, s=short)
+        else:
+            out[canon] = src
+    return out
+
+
+NAMINGS: dict[str, dict[str, str | tuple[str, str]]] = {
+    "bandai": _lr({
+        "pelvis": "Hips", "spine1": "Spine", "spine2": ("Spine", "Chest"), "spine3": "Chest", "neck": "Neck", "head": "Head",
+        "{side}_hip": "UpperLeg_{s}", "{side}_knee": "LowerLeg_{s}", "{side}_ankle": "Foot_{s}", "{side}_foot": "Toes_{s}",
+        "{side}_collar": "Shoulder_{s}", "{side}_shoulder": "UpperArm_{s}", "{side}_elbow": "LowerArm_{s}", "{side}_wrist": "Hand_{s}",
+    }),
+    "lafan1": _lr({
+        "pelvis": "Hips", "spine1": "Spine", "spine2": "Spine1", "spine3": "Spine2", "neck": "Neck", "head": "Head",
+        "{side}_hip": "{S}UpLeg", "{side}_knee": "{S}Leg", "{side}_ankle": "{S}Foot", "{side}_foot": "{S}Toe",
+        "{side}_collar": "{S}Shoulder", "{side}_shoulder": "{S}Arm", "{side}_elbow": "{S}ForeArm", "{side}_wrist": "{S}Hand",
+    }),
+    "mixamo": _lr({  # after stripping the 'mixamorig:' prefix
+        "pelvis": "Hips", "spine1": "Spine", "spine2": "Spine1", "spine3": "Spine2", "neck": "Neck", "head": "Head",
+        "{side}_hip": "{S}UpLeg", "{side}_knee": "{S}Leg", "{side}_ankle": "{S}Foot", "{side}_foot": "{S}ToeBase",
+        "{side}_collar": "{S}Shoulder", "{side}_shoulder": "{S}Arm", "{side}_elbow": "{S}ForeArm", "{side}_wrist": "{S}Hand",
+    }),
+    "cmu": _lr({
+        "pelvis": "Hips", "spine1": "LowerBack", "spine2": "Spine", "spine3": "Spine1", "neck": "Neck", "head": "Head",
+        "{side}_hip": "{S}UpLeg", "{side}_knee": "{S}Leg", "{side}_ankle": "{S}Foot", "{side}_foot": "{S}ToeBase",
+        "{side}_collar": "{S}Shoulder", "{side}_shoulder": "{S}Arm", "{side}_elbow": "{S}ForeArm", "{side}_wrist": "{S}Hand",
+    }),
+    "smpl": {n: n for n in JOINT_NAMES},
+    "smpl_short": _lr({
+        "pelvis": "Pelvis", "spine1": "Spine1", "spine2": "Spine2", "spine3": "Spine3", "neck": "Neck", "head": "Head",
+        "{side}_hip": "{s}_Hip", "{side}_knee": "{s}_Knee", "{side}_ankle": "{s}_Ankle", "{side}_foot": "{s}_Foot",
+        "{side}_collar": "{s}_Collar", "{side}_shoulder": "{s}_Shoulder", "{side}_elbow": "{s}_Elbow", "{side}_wrist": "{s}_Wrist",
+    }),
+}
+_PREFIX = re.compile(r"^(mixamorig\d*[:_]|.*:)")
+
+# direction of a leaf joint's (virtual) child bone in the canonical rest pose
+_LEAF_DIR = {"head": (0.0, 1.0, 0.0), "left_wrist": (1.0, 0.0, 0.0), "right_wrist": (-1.0, 0.0, 0.0),
+             "left_foot": (0.0, 0.0, 1.0), "right_foot": (0.0, 0.0, 1.0)}
+UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+
+
+def strip_prefix(name: str) -> str:
+    return _PREFIX.sub("", name)
+
+
+@dataclass
+class Mapping:
+    name: str
+    joints: dict[str, tuple[int, ...]]  # canonical joint -> one or two source joint indices
+
+    def describe(self) -> str:
+        return self.name
+
+
+def _resolve(naming: dict, index: dict[str, int]) -> dict[str, tuple[int, ...]] | None:
+    out = {}
+    for canon in JOINT_NAMES:
+        src = naming.get(canon)
+        if src is None:
+            return None
+        names = (src,) if isinstance(src, str) else tuple(src)
+        try:
+            out[canon] = tuple(index[n.lower()] for n in names)
+        except KeyError:
+            return None
+    return out
+
+
+def load_mapping_file(path: str | Path) -> dict:
+    """A user mapping: JSON object {canonical joint: source joint name or [name, name]}."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: cannot read the joint mapping ({e}). It must be a JSON object like "
+                         '{"pelvis": "Hips", "spine2": ["Spine", "Chest"], ...}') from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: the joint mapping must be a JSON object")
+    missing = [j for j in JOINT_NAMES if j not in data]
+    if missing:
+        raise ValueError(f"{path}: the joint mapping lacks {missing}; map every canonical joint {JOINT_NAMES}")
+    return data
+
+
+def detect_mapping(b: BVH, user: dict | None = None) -> Mapping:
+    index = {strip_prefix(n).lower(): j for j, n in enumerate(b.names)}
+    if user is not None:
+        m = _resolve(user, index)
+        if m is None:
+            absent = sorted({s for v in user.values() for s in ([v] if isinstance(v, str) else v)} - set(index))
+            raise BVHError(f"{b.source}: the joint mapping names joints the file lacks: {absent}. Fix the mapping file")
+        return Mapping("user", m)
+    for name, naming in NAMINGS.items():
+        m = _resolve(naming, index)
+        if m is not None:
+            return Mapping(name, m)
+    raise BVHError(f"{b.source}: unknown skeleton (joints: {', '.join(b.names[:12])}{'...' if len(b.names) > 12 else ''}); "
+                   f"none of the known namings {list(NAMINGS)} matches. Pass a mapping file (--mapping map.json) "
+                   f"that names a source joint for each of {JOINT_NAMES}")
+
+
+def _rest_positions(b: BVH) -> np.ndarray:
+    """Joint positions with every rotation zero; position channels at their median value."""
+    t = b.offsets.copy()
+    lt = np.median(b.local_translations(), axis=0)
+    for j, ch in enumerate(b.channels):
+        if any(c.endswith("position") for c in ch):
+            t[j] = lt[j]
+    P = np.zeros_like(t)
+    for j, p in enumerate(b.parents):
+        P[j] = t[j] if p < 0 else P[p] + t[j]
+    return P
+
+
+def _chain_length(P_rest: np.ndarray, a: int, b_: int) -> float:
+    return float(np.linalg.norm(P_rest[b_] - P_rest[a]))
+
+
+def detect_units(b: BVH, m: Mapping) -> tuple[str, float]:
+    """Judge the unit from the stature implied by the bone lengths: legs (+15 % for the foot drop)
+    plus trunk and neck, plus 12 cm of skull; the unit that makes it nearest 1.7 m wins."""
+    P = _rest_positions(b)
+    j = {k: v[0] for k, v in m.joints.items()}
+    leg = np.mean([_chain_length(P, j[f"{s}_hip"], j[f"{s}_knee"]) + _chain_length(P, j[f"{s}_knee"], j[f"{s}_ankle"])
+                   for s in ("left", "right")])
+    trunk = _chain_length(P, j["pelvis"], j["neck"]) + _chain_length(P, j["neck"], j["head"])
+    best, best_err = None, math.inf
+    for unit, s in UNITS.items():
+        h = (leg * 1.15 + trunk) * s + 0.12
+        err = abs(math.log(h / 1.7))
+        if err < best_err:
+            best, best_err = unit, err
+    h = (leg * 1.15 + trunk) * UNITS[best] + 0.12
+    if not 0.5 < h < 3.0:
+        raise BVHError(f"{b.source}: cannot judge the unit: the skeleton is {leg * 1.15 + trunk:.3g} file units tall, "
+                       f"which is no human stature in any of {list(UNITS)}. Pass --unit explicitly")
+    return best, UNITS[best]
+
+
+def _axis_snap(v: np.ndarray) -> np.ndarray:
+    k = int(np.argmax(np.abs(v)))
+    out = np.zeros(3)
+    out[k] = np.sign(v[k])
+    return out
+
+
+def detect_axes(P: np.ndarray, m: Mapping) -> np.ndarray:
+    """Matrix A (rows: world X=left, Y=up, Z=forward in file axes) from the motion's joint
+    positions P (F, J, 3): up from feet to head, left from the hips, forward from the toes (so a
+    left-handed file is detected and mirrored into our right-handed world)."""
+    j = {k: v[0] for k, v in m.joints.items()}
+    up = _axis_snap(np.median(P[:, j["head"]] - 0.5 * (P[:, j["left_ankle"]] + P[:, j["right_ankle"]]), 0))
+    left = np.median(P[:, j["left_hip"]] - P[:, j["right_hip"]], 0)
+    left = _axis_snap(left - up * (left @ up))
+    toe = np.median(P[:, j["left_foot"]] - P[:, j["left_ankle"]] + P[:, j["right_foot"]] - P[:, j["right_ankle"]], 0)
+    fwd = np.cross(left, up)
+    if toe @ fwd < 0:  # left-handed file: mirror so the toes point forward
+        fwd = -fwd
+    return np.stack((left, up, fwd))
+
+
+@dataclass
+class Retargeted:
+    """Motion on the canonical body at its source frame rate (average shape)."""
+    root_pos: np.ndarray  # (F, 3) metres, pelvis
+    quats: np.ndarray  # (F, 22, 4): joint 0 global root rotation, 1..21 local rotations (w, x, y, z)
+    fps: float
+    info: dict = field(default_factory=dict)
+
+
+def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None) -> Retargeted:
+    m = detect_mapping(b, mapping)
+    unit_name, scale = (unit, UNITS[unit]) if unit else detect_units(b, m)
+    P_src, G_src = b.global_transforms()
+    A = detect_axes(P_src, m)
+    P_w = torch.from_numpy(np.einsum("ab,fjb->fja", A, P_src) * scale)
+    G_w = torch.from_numpy(np.einsum("ab,fjbc,dc->fjad", A, G_src, A))
+    P_rest = torch.from_numpy(_rest_positions(b) @ A.T * scale)
+
+    def src_rot(idx: tuple[int, ...]) -> torch.Tensor:
+        if len(idx) == 1:
+            return G_w[:, idx[0]]
+        qa, qb = rot.matrix_to_quat(G_w[:, idx[0]]), rot.matrix_to_quat(G_w[:, idx[1]])
+        return rot.quat_to_matrix(rot.quat_slerp(qa, qb, 0.5))
+
+    def rest_pos(idx: tuple[int, ...]) -> torch.Tensor:
+        return P_rest[list(idx)].mean(0)
+
+    can_off = rest_offsets(None, torch.float64)
+    children = {j: [k for k in range(NUM_JOINTS) if PARENTS[k] == j] for j in range(NUM_JOINTS)}
+    C = [None] * NUM_JOINTS
+    for j in range(NUM_JOINTS):
+        name = JOINT_NAMES[j]
+        idx = m.joints[name]
+        kids = children[j]
+        if kids:
+            can_dirs = torch.stack([can_off[k] for k in kids])
+            src_dirs = torch.stack([rest_pos(m.joints[JOINT_NAMES[k]]) - rest_pos(idx) for k in kids])
+        else:  # leaf: use the source joint's own child or End Site if it has a length
+            src_kids = [k for k, p in enumerate(b.parents) if p == idx[-1]]
+            v = None
+            if src_kids:
+                v = P_rest[src_kids[0]] - P_rest[idx[-1]]
+            elif idx[-1] in b.end_sites:
+                v = torch.from_numpy(A @ b.end_sites[idx[-1]] * scale)
+            if v is None or v.norm() < 1e-6:
+                C[j] = C[PARENTS[j]]
+                continue
+            can_dirs, src_dirs = torch.tensor([_LEAF_DIR[name]], dtype=torch.float64), v[None]
+        if (src_dirs.norm(dim=-1) < 1e-9).any():
+            raise BVHError(f"{b.source}: joints mapped to {name} and its children coincide; the skeleton is degenerate. "
+                           "Check the mapping")
+        can_dirs, src_dirs = rot.normalize(can_dirs), rot.normalize(src_dirs)
+        if len(kids) >= 2:
+            C[j] = rot.kabsch(can_dirs, src_dirs)
+        else:
+            C[j] = rot.rotation_between(can_dirs[0], src_dirs[0])
+    glob = torch.stack([src_rot(m.joints[n]) @ C[j] for j, n in enumerate(JOINT_NAMES)], 1)  # (F, 22, 3, 3)
+    local = glob[:, 1:].clone()
+    for j in range(1, NUM_JOINTS):
+        local[:, j - 1] = glob[:, PARENTS[j]].transpose(-1, -2) @ glob[:, j]
+
+    # root trajectory scaled by leg length
+    jm = {k: v[0] for k, v in m.joints.items()}
+    src_leg = np.mean([float((P_rest[jm[f"{s}_knee"]] - P_rest[jm[f"{s}_hip"]]).norm() + (P_rest[jm[f"{s}_ankle"]] - P_rest[jm[f"{s}_knee"]]).norm())
+                       for s in ("left", "right")])
+    can_leg = float(can_off[[4, 7]].norm(dim=-1).sum())
+    ratio = can_leg / src_leg
+    root = P_w[:, m.joints["pelvis"][0]] * ratio
+    # feet on the ground: the 10th percentile of the per-frame lowest foot joint sits at FOOT_CLEARANCE
+    J, _ = forward_kinematics(root, glob[:, 0], local, can_off)
+    feet = J[:, [JOINT_INDEX[n] for n in ("left_ankle", "right_ankle", "left_foot", "right_foot")], 1].min(1).values
+    lift = FOOT_CLEARANCE - float(torch.quantile(feet, 0.1))
+    root[:, 1] += lift
+    quats = torch.cat((rot.matrix_to_quat(glob[:, :1]), rot.matrix_to_quat(local)), 1)
+    info = {"skeleton": m.name, "unit": unit_name, "scale_to_metres": scale, "leg_ratio": ratio, "lift_m": lift,
+            "source_fps": b.fps}
+    return Retargeted(root.numpy().astype(np.float32), quats.numpy().astype(np.float32), b.fps, info)
+
+
+def resample(r: Retargeted, fps: float = 30.0) -> Retargeted:
+    """Resample to `fps`: linear for the root, slerp for rotations."""
+    if abs(r.fps - fps) < 1e-3:
+        return r
+    F = r.root_pos.shape[0]
+    dur = (F - 1) / r.fps
+    n = int(math.floor(dur * fps + 1e-6)) + 1
+    src_t = np.arange(n) / fps * r.fps
+    i0 = np.clip(np.floor(src_t).astype(int), 0, F - 1)
+    i1 = np.clip(i0 + 1, 0, F - 1)
+    w = torch.from_numpy((src_t - i0).astype(np.float64))
+    root = r.root_pos[i0] * (1 - w.numpy()[:, None]) + r.root_pos[i1] * w.numpy()[:, None]
+    q0, q1 = torch.from_numpy(r.quats[i0]).double(), torch.from_numpy(r.quats[i1]).double()
+    q = rot.quat_slerp(q0, q1, w[:, None].expand(-1, NUM_JOINTS))
+    return Retargeted(root.astype(np.float32), q.numpy().astype(np.float32), fps, {**r.info, "resampled_from": r.fps})

@@ -1,0 +1,117 @@
+"""Checkpoints as folders: model.safetensors (no pickle), config.json, card.md (DESIGN §4).
+
+config.json holds the architecture, the state layout, the normalisation statistics, the diffusion
+schedule, the training data and the licence. Loading validates all of it and names any mismatch.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from ..data.dataset import Normalizer
+from ..data.motion_state import SLICES, STATE_DIM
+from .denoiser import Denoiser, DenoiserConfig
+from .diffusion import Diffusion
+
+FORMAT = "avatar-motor-checkpoint/1"
+STATE_LAYOUT = {k: [v.start, v.stop] for k, v in SLICES.items()}
+
+
+class CheckpointError(ValueError):
+    """A checkpoint folder is missing, corrupt or does not match this code."""
+
+
+@dataclass
+class Motor:
+    """A loaded base model: network, normalisation, diffusion schedule and its config."""
+    net: Denoiser
+    norm: Normalizer
+    diffusion: Diffusion
+    config: dict
+    path: Path | None = None
+
+    @property
+    def name(self) -> str:
+        return self.config.get("name", self.path.name if self.path else "model")
+
+
+def save_checkpoint(folder: str | Path, net: Denoiser, norm: Normalizer, extra: dict | None = None,
+                    card: str | None = None, diffusion_steps: int = 50) -> Path:
+    """Write atomically: a temporary sibling folder is filled, then renamed over the target."""
+    folder = Path(folder)
+    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    cfg = {
+        "format": FORMAT,
+        "denoiser": net.cfg.to_dict(),
+        "state_layout": STATE_LAYOUT,
+        "state_dim": STATE_DIM,
+        "diffusion": {"train_steps": diffusion_steps, "schedule": "squaredcos_cap_v2", "prediction": "x0"},
+        "normalizer": norm.to_dict(),
+        **(extra or {}),
+    }
+    save_file({k: v.detach().contiguous().cpu() for k, v in net.state_dict().items()}, str(tmp / "model.safetensors"))
+    (tmp / "config.json").write_text(json.dumps(cfg, indent=1))
+    (tmp / "card.md").write_text(card or f"# {folder.name}\n\nNo card was written for this checkpoint.\n")
+    old = folder.with_name(folder.name + f".old{os.getpid()}")
+    if folder.exists():
+        folder.rename(old)
+    tmp.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
+def load_checkpoint(folder: str | Path) -> Motor:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CheckpointError(f"{folder}: no such checkpoint folder. Pass a folder with model.safetensors and config.json "
+                              "(the shipped model is models/primal-bandai)")
+    cfg_path, w_path = folder / "config.json", folder / "model.safetensors"
+    for p in (cfg_path, w_path):
+        if not p.exists():
+            raise CheckpointError(f"{folder}: {p.name} is missing; this is not a complete checkpoint")
+    try:
+        cfg = json.loads(cfg_path.read_text())
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{cfg_path}: not valid JSON ({e}); the checkpoint is corrupt") from None
+    if cfg.get("format") != FORMAT:
+        raise CheckpointError(f"{cfg_path}: format {cfg.get('format')!r} is not {FORMAT!r}; this is not an avatar-motor checkpoint")
+    if cfg.get("state_layout") != STATE_LAYOUT or cfg.get("state_dim") != STATE_DIM:
+        raise CheckpointError(f"{cfg_path}: motion-state layout {cfg.get('state_layout')} differs from this code's {STATE_LAYOUT}; "
+                              "retrain or use a matching version")
+    known = {f.name for f in fields(DenoiserConfig)}
+    dcfg = cfg.get("denoiser", {})
+    unknown = set(dcfg) - known
+    if unknown:
+        raise CheckpointError(f"{cfg_path}: unknown denoiser fields {sorted(unknown)}")
+    try:
+        net = Denoiser(DenoiserConfig(**dcfg))
+        norm = Normalizer.from_dict(cfg["normalizer"])
+    except (KeyError, ValueError, TypeError) as e:
+        raise CheckpointError(f"{cfg_path}: invalid config ({e})") from None
+    try:
+        weights = load_file(str(w_path))
+    except Exception as e:  # safetensors raises several error types on garbage
+        raise CheckpointError(f"{w_path}: cannot read the weights ({e}); the file is corrupt or truncated") from None
+    own = net.state_dict()
+    missing = sorted(set(own) - set(weights))
+    extra = sorted(set(weights) - set(own))
+    bad = sorted(k for k in set(own) & set(weights) if own[k].shape != weights[k].shape)
+    if missing or extra or bad:
+        detail = "; ".join(x for x in (
+            f"missing {missing[:5]}" if missing else "", f"unexpected {extra[:5]}" if extra else "",
+            "shape mismatch " + ", ".join(f"{k} {tuple(weights[k].shape)} vs {tuple(own[k].shape)}" for k in bad[:5]) if bad else "") if x)
+        raise CheckpointError(f"{w_path}: weights do not match config.json ({detail})")
+    for k, v in weights.items():
+        if not torch.isfinite(v).all():
+            raise CheckpointError(f"{w_path}: tensor {k} contains NaN or infinite values")
+    net.load_state_dict(weights)
+    net.eval()
+    return Motor(net, norm, Diffusion(cfg["diffusion"]["train_steps"]), cfg, folder)

@@ -1,0 +1,125 @@
+"""The denoiser G(t, X_t, x_0) -> X0_hat (PRIMAL §3.3, Fig. 2, supplementary §8.1).
+
+InContext: the time embedding and the initial-state embedding are added into one prefix token,
+concatenated with the frame tokens; pre-norm transformer blocks with SiLU feed-forward; learned
+positional encoding. AdaLN: DiT blocks whose LayerNorm scale/shift/gate come from the summed
+condition (adaLN-zero). Both keep the blocks in a ModuleList so adaptors can wrap each block.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..data.motion_state import STATE_DIM
+
+
+@dataclass
+class DenoiserConfig:
+    arch: str = "incontext"  # or "adaln"
+    state_dim: int = STATE_DIM
+    frames: int = 15
+    width: int = 256
+    depth: int = 6
+    heads: int = 8
+    ff: int = 1024
+    dropout: float = 0.1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
+    half = dim // 2
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32) / half)
+    args = t.float()[:, None] * freqs[None]
+    return torch.cat((torch.cos(args), torch.sin(args)), -1)
+
+
+class Attention(nn.Module):
+    def __init__(self, width: int, heads: int, dropout: float):
+        super().__init__()
+        self.heads = heads
+        self.qkv = nn.Linear(width, 3 * width)
+        self.out = nn.Linear(width, width)
+        self.dropout = dropout
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        B, N, C = x.shape
+        q, k, v = self.qkv(x).view(B, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
+        y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.out(y.transpose(1, 2).reshape(B, N, C))
+
+
+class FeedForward(nn.Sequential):
+    def __init__(self, width: int, ff: int, dropout: float):
+        super().__init__(nn.Linear(width, ff), nn.SiLU(), nn.Dropout(dropout), nn.Linear(ff, width))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block; `cond` is used only by the AdaLN variant."""
+
+    def __init__(self, cfg: DenoiserConfig):
+        super().__init__()
+        w = cfg.width
+        self.adaln = cfg.arch == "adaln"
+        self.norm1 = nn.LayerNorm(w, elementwise_affine=not self.adaln)
+        self.attn = Attention(w, cfg.heads, cfg.dropout)
+        self.norm2 = nn.LayerNorm(w, elementwise_affine=not self.adaln)
+        self.ff = FeedForward(w, cfg.ff, cfg.dropout)
+        self.drop = nn.Dropout(cfg.dropout)
+        if self.adaln:
+            self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(w, 6 * w))
+            nn.init.zeros_(self.modulation[1].weight)
+            nn.init.zeros_(self.modulation[1].bias)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
+        if not self.adaln:
+            x = x + self.drop(self.attn(self.norm1(x)))
+            return x + self.drop(self.ff(self.norm2(x)))
+        sh1, sc1, g1, sh2, sc2, g2 = self.modulation(cond)[:, None].chunk(6, -1)
+        x = x + g1 * self.drop(self.attn(self.norm1(x) * (1 + sc1) + sh1))
+        return x + g2 * self.drop(self.ff(self.norm2(x) * (1 + sc2) + sh2))
+
+
+class Denoiser(nn.Module):
+    def __init__(self, cfg: DenoiserConfig):
+        super().__init__()
+        if cfg.arch not in ("incontext", "adaln"):
+            raise ValueError(f"unknown denoiser arch {cfg.arch!r}; use 'incontext' or 'adaln'")
+        self.cfg = cfg
+        w = cfg.width
+        self.time_mlp = nn.Sequential(nn.Linear(w, w), nn.SiLU(), nn.Linear(w, w))
+        self.x0_embed = nn.Linear(cfg.state_dim, w)
+        self.in_proj = nn.Linear(cfg.state_dim, w)
+        n_tok = cfg.frames + (1 if cfg.arch == "incontext" else 0)
+        self.pos = nn.Parameter(torch.randn(1, n_tok, w) * 0.02)
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.depth))
+        self.norm_out = nn.LayerNorm(w)
+        self.out = nn.Linear(w, cfg.state_dim)
+
+    def condition(self, t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        """Summed time + initial-state embedding (B, width)."""
+        return self.time_mlp(timestep_embedding(t, self.cfg.width)) + self.x0_embed(x0)
+
+    def tokens(self, x_t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        h = self.in_proj(x_t)
+        if self.cfg.arch == "incontext":
+            h = torch.cat((cond[:, None], h), 1)
+        return h + self.pos
+
+    def head(self, h: torch.Tensor) -> torch.Tensor:
+        if self.cfg.arch == "incontext":
+            h = h[:, 1:]
+        return self.out(self.norm_out(h))
+
+    def forward(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        """t (B,) long, x_t (B, frames, D) noisy normalized segment, x0 (B, D) normalized initial state."""
+        cond = self.condition(t, x0)
+        h = self.tokens(x_t, cond)
+        for blk in self.blocks:
+            h = blk(h, cond)
+        return self.head(h)

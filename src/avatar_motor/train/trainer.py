@@ -1,0 +1,282 @@
+"""Training loop: AdamW, EMA, checkpoints with exact resume, progress with steps/s and ETA, a
+metrics log and a loss-curve PNG, and data-parallel training through torchrun (gloo on CPU).
+
+Exact resume: the data/noise generator, torch's global RNG (dropout), the optimizer, the EMA and
+the step are saved (safetensors + JSON, no pickle). Data parallelism: every rank draws the same
+global batch and trains on its own slice, so N processes with batch B/N each reproduce one
+process with batch B.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from safetensors.torch import load_file, save_file
+
+from ..data.cache import MotionCache, default_cache_dir
+from ..data.dataset import Normalizer, SegmentConfig, SegmentDataset, load_or_compute_stats
+from ..model.checkpoint import save_checkpoint
+from ..model.denoiser import Denoiser, DenoiserConfig
+from ..model.diffusion import Diffusion
+from .losses import motion_loss
+
+LICENCE_NOTE = ("Trained on the Bandai Namco Research Motion Dataset (CC BY-NC 4.0): the weights are for "
+                "non-commercial use only.")
+
+
+@dataclass
+class TrainConfig:
+    data: list[str] = field(default_factory=lambda: ["dataset-1", "dataset-2"])  # cache names or .npz paths
+    out: str = "runs/base"
+    steps: int = 6000
+    batch: int = 256
+    lr: float = 1e-4
+    warmup: int = 0  # linear warm-up steps
+    lr_final_ratio: float = 1.0  # cosine decay to lr * ratio at `steps` (1.0 = constant, as PRIMAL)
+    weight_decay: float = 0.0
+    ema_decay: float = 0.999
+    ema_start: int = 500  # steps before the EMA starts tracking (PRIMAL starts after 5 % of training)
+    fk_weight: float = 20.0  # per m^2 of joint-position error
+    fkv_weight: float = 0.2  # per (m/s)^2 of joint-velocity error
+    checkpoint_every: int = 250
+    log_every: int = 25
+    seed: int = 0
+    threads: int = 0  # 0 = torch default
+    diffusion_steps: int = 50
+    model: DenoiserConfig = field(default_factory=DenoiserConfig)
+    segment: SegmentConfig = field(default_factory=SegmentConfig)
+    name: str = "avatar-motor-base"
+    licence: str = LICENCE_NOTE
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        d = dict(d)
+        known = {f for f in TrainConfig.__dataclass_fields__}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown training config fields {sorted(unknown)}; known: {sorted(known)}")
+        if "model" in d:
+            d["model"] = DenoiserConfig(**d["model"])
+        if "segment" in d:
+            d["segment"] = SegmentConfig(**d["segment"])
+        return TrainConfig(**d)
+
+
+def resolve_caches(names: list[str]) -> list[Path]:
+    out = []
+    for n in names:
+        p = Path(n)
+        if p.suffix != ".npz":
+            p = default_cache_dir() / f"{n}.npz"
+        if not p.exists():
+            raise FileNotFoundError(f"motion cache {p} not found; run 'avatar-motor data import PATH' first")
+        out.append(p)
+    return out
+
+
+class EMA:
+    def __init__(self, net: torch.nn.Module, decay: float):
+        self.decay = decay
+        self.shadow = {k: v.detach().clone() for k, v in net.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, net: torch.nn.Module, active: bool) -> None:
+        for k, v in net.state_dict().items():
+            if active and v.dtype.is_floating_point:
+                self.shadow[k].mul_(self.decay).add_(v.detach(), alpha=1 - self.decay)
+            else:
+                self.shadow[k].copy_(v)
+
+
+def _flatten_optimizer(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    sd = opt.state_dict()
+    tensors, meta = {}, {"param_groups": sd["param_groups"], "state_keys": {}}
+    for pid, st in sd["state"].items():
+        meta["state_keys"][str(pid)] = list(st)
+        for k, v in st.items():
+            tensors[f"opt.{pid}.{k}"] = v if torch.is_tensor(v) else torch.tensor(v)
+    return tensors, meta
+
+
+def _unflatten_optimizer(tensors: dict, meta: dict) -> dict:
+    state = {int(pid): {k: tensors[f"opt.{pid}.{k}"] for k in keys} for pid, keys in meta["state_keys"].items()}
+    return {"state": state, "param_groups": meta["param_groups"]}
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig, progress: bool = True):
+        self.cfg = cfg
+        self.progress = progress
+        self.rank, self.world = 0, 1
+        if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+            if not dist.is_initialized():
+                dist.init_process_group("gloo")
+            self.rank, self.world = dist.get_rank(), dist.get_world_size()
+            if cfg.batch % self.world:
+                raise ValueError(f"batch {cfg.batch} must divide by the {self.world} processes")
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        self.out = Path(cfg.out)
+        self.cache_paths = resolve_caches(cfg.data)
+        caches = [MotionCache.load(p) for p in self.cache_paths]
+        self.ds = SegmentDataset(caches, cfg.segment)
+        self.norm = load_or_compute_stats(self.ds, self.cache_paths)
+        torch.manual_seed(cfg.seed)
+        self.net = Denoiser(cfg.model)
+        self.diffusion = Diffusion(cfg.diffusion_steps)
+        self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.ema = EMA(self.net, cfg.ema_decay)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.step = 0
+        self.model = self.net
+        if self.world > 1:
+            self.model = torch.nn.parallel.DistributedDataParallel(self.net)
+        self._resume()
+
+    # ------------------------------------------------------------ state
+    def _resume(self) -> None:
+        st = self.out / "train_state"
+        if not (st / "state.json").exists():
+            return
+        meta = json.loads((st / "state.json").read_text())
+        tensors = load_file(str(st / "state.safetensors"))
+        self.net.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("net.")})
+        self.ema.shadow = {k[4:]: v for k, v in tensors.items() if k.startswith("ema.")}
+        self.opt.load_state_dict(_unflatten_optimizer(tensors, meta["optimizer"]))
+        self.gen.set_state(tensors["rng.data"])
+        torch.set_rng_state(tensors["rng.torch"])
+        self.step = meta["step"]
+        if self.rank == 0:
+            print(f"resumed from {st} at step {self.step}", flush=True)
+
+    def save_state(self) -> None:
+        if self.rank != 0:
+            return
+        st = self.out / "train_state"
+        tmp = self.out / "train_state.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        opt_t, opt_meta = _flatten_optimizer(self.opt)
+        tensors = {**{f"net.{k}": v for k, v in self.net.state_dict().items()},
+                   **{f"ema.{k}": v for k, v in self.ema.shadow.items()}, **opt_t,
+                   "rng.data": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
+        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / "state.safetensors"))
+        (tmp / "state.json").write_text(json.dumps({"step": self.step, "optimizer": opt_meta}))
+        if st.exists():
+            shutil.rmtree(st)
+        tmp.rename(st)
+        self.export(self.out / "checkpoint")
+
+    def export(self, folder: Path, card: str | None = None, extra: dict | None = None) -> Path:
+        ema_net = Denoiser(self.cfg.model)
+        ema_net.load_state_dict(self.ema.shadow)
+        info = {"name": self.cfg.name, "licence": self.cfg.licence, "trained_steps": self.step,
+                "training_data": [str(p.name) for p in self.cache_paths], "train_config": _jsonable(asdict(self.cfg)),
+                **(extra or {})}
+        return save_checkpoint(folder, ema_net, self.norm, info, card, self.cfg.diffusion_steps)
+
+    # ------------------------------------------------------------ loop
+    def train_step(self) -> dict[str, float]:
+        cfg = self.cfg
+        self.net.train()
+        x, shapes = self.ds.sample(cfg.batch, self.gen)
+        t = torch.randint(self.diffusion.T, (cfg.batch,), generator=self.gen)
+        noise = torch.randn(cfg.batch, cfg.segment.frames, x.shape[-1], generator=self.gen)
+        if self.world > 1:  # every rank drew the global batch; keep this rank's slice
+            sl = slice(self.rank * cfg.batch // self.world, (self.rank + 1) * cfg.batch // self.world)
+            x, shapes, t, noise = x[sl], shapes[sl], t[sl], noise[sl]
+        xn = self.norm.encode(x)
+        x_init_n, target_n = xn[:, 0], xn[:, 1:]
+        x_t = self.diffusion.q_sample(target_n, t, noise)
+        pred = self.model(t, x_t, x_init_n)
+        losses = motion_loss(pred, target_n, x[:, 0], shapes, self.norm, cfg.fk_weight, cfg.fkv_weight)
+        for g in self.opt.param_groups:
+            g["lr"] = self.lr_at(self.step)
+        self.opt.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        self.opt.step()
+        self.step += 1
+        self.ema.update(self.net, active=self.step > cfg.ema_start)
+        return {k: float(v.detach()) for k, v in losses.items()}
+
+    def lr_at(self, step: int) -> float:
+        cfg = self.cfg
+        if step < cfg.warmup:
+            return cfg.lr * (step + 1) / cfg.warmup
+        p = min(1.0, (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup))
+        return cfg.lr * (cfg.lr_final_ratio + (1 - cfg.lr_final_ratio) * 0.5 * (1 + math.cos(math.pi * p)))
+
+    def run(self, steps: int | None = None) -> list[dict]:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        end = steps if steps is not None else cfg.steps
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self.rank == 0:
+            (self.out / "config.json").write_text(json.dumps(_jsonable(asdict(cfg)), indent=1))
+        log_path = self.out / "metrics.jsonl"
+        history = []
+        bar = tqdm(total=end, initial=self.step, desc="train", unit="step", disable=not self.progress or self.rank != 0,
+                   mininterval=5.0)
+        t0, s0 = time.time(), self.step
+        window: list[dict] = []
+        while self.step < end:
+            m = self.train_step()
+            m["step"] = self.step
+            history.append(m)
+            window.append(m)
+            bar.update(1)
+            if self.step % cfg.log_every == 0 or self.step == end:
+                rate = (self.step - s0) / max(time.time() - t0, 1e-9)
+                # log the mean over the interval: single-step losses are too noisy to read
+                m = {k: sum(w[k] for w in window) / len(window) for k in ("loss", "simple", "fk", "fkv")}
+                m.update(step=self.step, steps_per_s=rate, elapsed_s=time.time() - t0)
+                window = []
+                bar.set_postfix(loss=f"{m['loss']:.4f}", sps=f"{rate:.2f}")
+                if self.rank == 0:
+                    with open(log_path, "a") as f:
+                        f.write(json.dumps(m) + "\n")
+            if self.step % cfg.checkpoint_every == 0 or self.step == end:
+                self.save_state()
+                if self.rank == 0:
+                    plot_losses(log_path, self.out / "loss.png")
+        bar.close()
+        return history
+
+
+def _jsonable(d):
+    if isinstance(d, dict):
+        return {k: _jsonable(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable(v) for v in d]
+    return d
+
+
+def plot_losses(log_path: Path, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [json.loads(l) for l in Path(log_path).read_text().splitlines() if l.strip()]
+    if not rows:
+        return
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for key in ("loss", "simple", "fk", "fkv"):
+        ax.plot([r["step"] for r in rows], [r[key] for r in rows], label=key)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    tmp = png.with_name(png.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(png)

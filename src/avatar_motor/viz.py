@@ -1,0 +1,62 @@
+"""Stick-figure contact sheets so a person can look at motion (matplotlib, headless)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .body.skeleton import PARENTS  # noqa: E402
+
+_LEFT = {1, 4, 7, 10, 13, 16, 18, 20}
+
+
+def _draw(ax, J: np.ndarray, color_l="tab:blue", color_r="tab:red", color_c="k", alpha=1.0):
+    for j, p in enumerate(PARENTS):
+        if p < 0:
+            continue
+        c = color_l if j in _LEFT else (color_r if j in {2, 5, 8, 11, 14, 17, 19, 21} else color_c)
+        ax.plot([J[p, 0], J[j, 0]], [J[p, 1], J[j, 1]], color=c, lw=1.6, alpha=alpha)
+    ax.scatter(J[:, 0], J[:, 1], s=4, c="k", alpha=alpha)
+
+
+def contact_sheet(rows: list[np.ndarray], path: str | Path, titles: list[str] | None = None,
+                  frames_per_row: int = 8, view: str = "side") -> None:
+    """rows: list of joint arrays (T, 22, 3). Each row shows `frames_per_row` evenly spaced frames
+    from the side (Z right, Y up) next to a top-down trajectory plot of the pelvis and feet."""
+    n = len(rows)
+    fig, axes = plt.subplots(n, frames_per_row + 1, figsize=(1.6 * (frames_per_row + 1), 2.4 * n), squeeze=False)
+    for r, J in enumerate(rows):
+        T = J.shape[0]
+        idx = np.linspace(0, T - 1, frames_per_row).round().astype(int)
+        for c, f in enumerate(idx):
+            ax = axes[r, c]
+            P = J[f]
+            # side view: horizontal axis = direction of the pelvis travel, centred on the pelvis
+            xy = np.stack((P[:, 2] - P[0, 2], P[:, 1]), 1) if view == "side" else np.stack((P[:, 0] - P[0, 0], P[:, 1]), 1)
+            _draw(ax, np.concatenate((xy, P[:, :1]), 1))
+            ax.axhline(0, color="0.6", lw=0.8)
+            ax.set_xlim(-1.0, 1.0)
+            ax.set_ylim(-0.1, 2.0)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"{f / 30:.1f}s", fontsize=7)
+        ax = axes[r, -1]
+        ax.plot(J[:, 0, 0], J[:, 0, 2], "k-", lw=1)
+        ax.plot(J[:, 10, 0], J[:, 10, 2], "b-", lw=0.6)
+        ax.plot(J[:, 11, 0], J[:, 11, 2], "r-", lw=0.6)
+        ax.plot(J[0, 0, 0], J[0, 0, 2], "go", ms=4)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=6)
+        ax.set_title("top (x,z)", fontsize=7)
+        if titles:
+            axes[r, 0].set_ylabel(titles[r], fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
