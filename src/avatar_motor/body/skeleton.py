@@ -44,6 +44,7 @@ _L = {  # left side; the right side mirrors x
 _C = {"spine1": (0.0, 0.110, -0.020), "spine2": (0.0, 0.135, 0.020), "spine3": (0.0, 0.055, 0.0),
       "neck": (0.0, 0.210, -0.030), "head": (0.0, 0.090, 0.050)}
 FOOT_CLEARANCE = 0.02  # height of the foot (toe) joint above the ground when standing, metres
+SKULL = 0.12  # top of the head above the head joint, metres
 
 
 def _template() -> torch.Tensor:
@@ -84,8 +85,8 @@ def rest_offsets(shape: torch.Tensor | None = None, dtype=torch.float32) -> torc
         scale[..., idx, 0] = scale[..., idx, 0] * (1 + 0.08 * shape[..., k, None])
     off = base * scale
     # stature: uniform scale so that standing height changes by 10 cm per unit
-    h0 = standing_height(None)
-    off = off * (1 + 0.10 * shape[..., 0, None, None] / h0)
+    scaled = standing_height(None) - FOOT_CLEARANCE - SKULL  # the part of the stature made of bones
+    off = off * (1 + 0.10 * shape[..., 0, None, None] / scaled)
     return off
 
 
@@ -99,7 +100,7 @@ def pelvis_height(offsets: torch.Tensor) -> torch.Tensor:
 def standing_height(shape: torch.Tensor | None) -> float | torch.Tensor:
     """Approximate stature: pelvis height + spine to head + 0.12 m of skull above the head joint."""
     off = TEMPLATE_OFFSETS if shape is None else rest_offsets(shape, torch.float64)
-    h = pelvis_height(off) + off[..., [3, 6, 9, 12, 15], 1].sum(-1) + 0.12
+    h = pelvis_height(off) + off[..., [3, 6, 9, 12, 15], 1].sum(-1) + SKULL
     return float(h) if shape is None else h
 
 

@@ -204,7 +204,11 @@ class Retargeted:
     info: dict = field(default_factory=dict)
 
 
-def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None) -> Retargeted:
+def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, ground: str = "auto") -> Retargeted:
+    """ground="auto" lifts the clip so its feet rest on the ground (skeletons differ in where their
+    toe joint sits); "keep" keeps the file's own heights (files this project wrote)."""
+    if ground not in ("auto", "keep"):
+        raise ValueError(f"ground must be 'auto' or 'keep', got {ground!r}")
     m = detect_mapping(b, mapping)
     unit_name, scale = (unit, UNITS[unit]) if unit else detect_units(b, m)
     P_src, G_src = b.global_transforms()
@@ -266,7 +270,7 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None) -> Re
     # feet on the ground: the 10th percentile of the per-frame lowest foot joint sits at FOOT_CLEARANCE
     J, _ = forward_kinematics(root, glob[:, 0], local, can_off)
     feet = J[:, [JOINT_INDEX[n] for n in ("left_ankle", "right_ankle", "left_foot", "right_foot")], 1].min(1).values
-    lift = FOOT_CLEARANCE - float(torch.quantile(feet, 0.1))
+    lift = FOOT_CLEARANCE - float(torch.quantile(feet, 0.1)) if ground == "auto" else 0.0
     root[:, 1] += lift
     quats = torch.cat((rot.matrix_to_quat(glob[:, :1]), rot.matrix_to_quat(local)), 1)
     info = {"skeleton": m.name, "unit": unit_name, "scale_to_metres": scale, "leg_ratio": ratio, "lift_m": lift,

@@ -267,36 +267,48 @@ def parse_bvh(text: str, src: str = "<string>") -> BVH:
                {j: np.asarray(v[0], np.float64) for j, v in end_sites.items()}, src)
 
 
+def dfs_order(parents: list[int]) -> list[int]:
+    """Joint indices in the depth-first order a BVH file lists them."""
+    roots = [j for j, p in enumerate(parents) if p < 0]
+    if len(roots) != 1:
+        raise ValueError(f"a BVH needs exactly one root joint, got {len(roots)}")
+    order, stack = [], [roots[0]]
+    while stack:
+        j = stack.pop()
+        order.append(j)
+        stack.extend(reversed([k for k, p in enumerate(parents) if p == j]))
+    return order
+
+
 def format_bvh(b: BVH, precision: int = 6) -> str:
+    """Text of a BVH. Joints are written depth-first (as the format requires) and the motion
+    columns are reordered to match, so any joint order in memory round-trips."""
+    order = dfs_order(b.parents)
     out = ["HIERARCHY"]
+    fmt = lambda v: " ".join(f"{x:.{precision}f}" for x in v)  # noqa: E731
 
     def emit(j: int, depth: int) -> None:
         ind = "  " * depth
         out.append(f"{ind}{'ROOT' if b.parents[j] < 0 else 'JOINT'} {b.names[j]}")
         out.append(f"{ind}{{")
-        out.append(f"{ind}  OFFSET {' '.join(f'{v:.{precision}f}' for v in b.offsets[j])}")
+        out.append(f"{ind}  OFFSET {fmt(b.offsets[j])}")
         out.append(f"{ind}  CHANNELS {len(b.channels[j])} {' '.join(b.channels[j])}".rstrip())
         kids = b.children(j)
         for c in kids:
             emit(c, depth + 1)
         if not kids or j in b.end_sites:
-            e = b.end_sites.get(j, np.zeros(3))
             out.append(f"{ind}  End Site")
             out.append(f"{ind}  {{")
-            out.append(f"{ind}    OFFSET {' '.join(f'{v:.{precision}f}' for v in e)}")
+            out.append(f"{ind}    OFFSET {fmt(b.end_sites.get(j, np.zeros(3)))}")
             out.append(f"{ind}  }}")
         out.append(f"{ind}}}")
 
-    roots = [j for j, p in enumerate(b.parents) if p < 0]
-    if len(roots) != 1:
-        raise ValueError(f"a BVH needs exactly one root joint, got {len(roots)}")
-    emit(roots[0], 0)
-    out.append("MOTION")
-    out.append(f"Frames: {b.num_frames}")
-    out.append(f"Frame Time: {b.frame_time:.8f}")
-    fmt = f"%.{precision}f"
+    emit(order[0], 0)
+    slices = b.channel_slices()
+    motion = np.concatenate([b.motion[:, slices[j]] for j in order], 1) if b.motion.size else b.motion
+    out += ["MOTION", f"Frames: {b.num_frames}", f"Frame Time: {b.frame_time:.8f}"]
     buf = _io.StringIO()
-    np.savetxt(buf, b.motion, fmt=fmt, delimiter=" ")
+    np.savetxt(buf, motion, fmt=f"%.{precision}f", delimiter=" ")
     return "\n".join(out) + "\n" + buf.getvalue()
 
 

@@ -1,0 +1,85 @@
+"""Exporters for motion on the canonical body: BVH (canonical skeleton, real offsets, centimetres,
+re-imports exactly), AMASS-style npz (the motion state plus named arrays) and glTF binary (see
+io/gltf.py). All write through a temporary file and a rename.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, SHAPE_NAMES, rest_offsets
+from ..data.motion_state import FPS, unpack
+from .bvh import bvh_from_rotations, write_bvh
+
+BVH_SCALE = 100.0  # metres -> centimetres, what BVH viewers expect
+LEAF_END_SITES = {"head": (0.0, 0.10, 0.0), "left_wrist": (0.08, 0.0, 0.0), "right_wrist": (-0.08, 0.0, 0.0),
+                  "left_foot": (0.0, 0.0, 0.05), "right_foot": (0.0, 0.0, 0.05)}
+
+
+def _atomic(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    try:
+        write(tmp)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def canonical_bvh(states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS):
+    """A BVH object of the canonical skeleton from world states (T, 267)."""
+    u = unpack(states.double())
+    local = torch.cat((u.root_rot[:, None], u.local_rot), 1)  # (T, 22, 3, 3)
+    off = rest_offsets(shape, torch.float64).numpy() * BVH_SCALE
+    ends = {JOINT_NAMES.index(n): np.array(v) * BVH_SCALE for n, v in LEAF_END_SITES.items()}
+    return bvh_from_rotations(JOINT_NAMES, PARENTS, off, u.root_pos.numpy() * BVH_SCALE, local, 1.0 / fps, "ZXY", ends)
+
+
+def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS,
+                 meta: dict | None = None) -> Path:
+    """Write world states (T, 267) as .bvh, .npz or .glb, chosen by the suffix."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".bvh":
+        b = canonical_bvh(states, shape, fps)
+        _atomic(path, lambda tmp: write_bvh(tmp, b))
+    elif suffix == ".npz":
+        u = unpack(states.double())
+        arrays = {
+            "states": states.float().numpy(), "fps": np.float32(fps),
+            "root_pos": u.root_pos.float().numpy(),
+            "root_orient": rot.matrix_to_axis_angle(u.root_rot).float().numpy(),
+            "pose_body": rot.matrix_to_axis_angle(u.local_rot).reshape(len(states), -1).float().numpy(),
+            "joints": u.joints.float().numpy(), "velocities": u.velocities.float().numpy(),
+            "betas": (shape if shape is not None else torch.zeros(len(SHAPE_NAMES))).float().numpy(),
+            "joint_names": np.array(JOINT_NAMES), "shape_names": np.array(SHAPE_NAMES),
+            "meta": np.array(json.dumps(meta or {})),
+        }
+
+        def w(tmp):
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+        _atomic(path, w)
+    elif suffix in (".glb", ".gltf"):
+        from .gltf import write_glb
+        if suffix == ".gltf":
+            raise ValueError(f"{path}: write glTF binary (.glb), which holds the body and its animation in one file")
+        _atomic(path, lambda tmp: write_glb(tmp, states, shape, fps))
+    else:
+        raise ValueError(f"{path}: unknown motion format {suffix!r}; use .bvh, .npz or .glb")
+    return path
+
+
+def read_npz_states(path: str | Path) -> tuple[torch.Tensor, float]:
+    with np.load(path, allow_pickle=False) as z:
+        if "states" not in z:
+            raise ValueError(f"{path}: no 'states' array; this npz was not written by avatar-motor")
+        return torch.from_numpy(z["states"]).float(), float(z["fps"])
+
+
+assert NUM_JOINTS == len(JOINT_NAMES)

@@ -1,0 +1,129 @@
+import itertools
+
+import pytest
+import torch
+
+from avatar_motor.body import rotations as rot
+from avatar_motor.body.skeleton import (JOINT_NAMES, MIRROR, PARENTS, SHAPE_DIM, forward_kinematics, pelvis_height,
+                                        rest_offsets, rest_positions, standing_height)
+
+ORDERS = ["".join(p) for p in itertools.permutations("XYZ")] + ["XYX", "XZX", "YXY", "YZY", "ZXZ", "ZYZ"]
+
+
+@pytest.fixture
+def R():
+    g = torch.Generator().manual_seed(0)
+    return rot.axis_angle_to_matrix(torch.randn(500, 3, generator=g, dtype=torch.float64) * 1.5)
+
+
+def test_smpl_joint_order_and_tree():
+    assert JOINT_NAMES[:3] == ["pelvis", "left_hip", "right_hip"] and JOINT_NAMES[-1] == "right_wrist"
+    assert len(JOINT_NAMES) == 22 and all(p < j for j, p in enumerate(PARENTS))
+    assert [JOINT_NAMES[i] for i in MIRROR][1:3] == ["right_hip", "left_hip"]
+
+
+def test_sixd_roundtrip(R):
+    assert torch.allclose(rot.sixd_to_matrix(rot.matrix_to_6d(R)), R, atol=1e-10)
+
+
+def test_quat_roundtrip(R):
+    q = rot.matrix_to_quat(R)
+    assert torch.allclose(rot.quat_to_matrix(q), R, atol=1e-10)
+    assert (q[..., 0] >= 0).all()
+
+
+def test_axis_angle_roundtrip(R):
+    aa = rot.matrix_to_axis_angle(R)
+    assert torch.allclose(rot.axis_angle_to_matrix(aa), R, atol=1e-9)
+    q = rot.axis_angle_to_quat(aa)
+    assert torch.allclose(rot.quat_to_axis_angle(q), aa, atol=1e-9)
+
+
+@pytest.mark.parametrize("order", ORDERS)
+def test_euler_roundtrip_every_order(R, order):
+    e = rot.matrix_to_euler(R, order)
+    assert torch.allclose(rot.euler_to_matrix(e, order), R, atol=1e-9)
+
+
+def test_euler_convention_matches_bvh():
+    # ZXY with angles (a, b, c) means R = Rz(a) Rx(b) Ry(c)
+    a = torch.tensor([[0.3, -0.2, 0.7]], dtype=torch.float64)
+    Rz = rot.euler_to_matrix(torch.tensor([[0.3, 0, 0]], dtype=torch.float64), "ZXY")
+    Rx = rot.euler_to_matrix(torch.tensor([[0, -0.2, 0]], dtype=torch.float64), "ZXY")
+    Ry = rot.euler_to_matrix(torch.tensor([[0, 0, 0.7]], dtype=torch.float64), "ZXY")
+    assert torch.allclose(rot.euler_to_matrix(a, "ZXY"), Rz @ Rx @ Ry)
+    # Rz(0.3) turns +X towards +Y
+    v = Rz[0] @ torch.tensor([1.0, 0, 0], dtype=torch.float64)
+    assert torch.allclose(v, torch.tensor([0.3, 0.3, 0], dtype=torch.float64).cos() * torch.tensor([1.0, 0, 0], dtype=torch.float64)
+                          + torch.tensor([0, 0.3, 0], dtype=torch.float64).sin())
+
+
+def test_gimbal_lock_still_roundtrips():
+    e = torch.tensor([[0.4, torch.pi / 2, -0.3]], dtype=torch.float64)
+    R = rot.euler_to_matrix(e, "XYZ")
+    assert torch.allclose(rot.euler_to_matrix(rot.matrix_to_euler(R, "XYZ"), "XYZ"), R, atol=1e-9)
+
+
+def test_float32_works(R):
+    R32 = R.float()
+    assert rot.matrix_to_quat(R32).dtype == torch.float32
+    assert torch.allclose(rot.quat_to_matrix(rot.matrix_to_quat(R32)), R32, atol=1e-5)
+
+
+def test_slerp_endpoints_and_midpoint():
+    a = rot.axis_angle_to_quat(torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64))
+    b = rot.axis_angle_to_quat(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    assert torch.allclose(rot.quat_slerp(a, b, 0.0), a) and torch.allclose(rot.quat_slerp(a, b, 1.0), b)
+    mid = rot.quat_to_axis_angle(rot.quat_slerp(a, b, 0.5))
+    assert torch.allclose(mid, torch.tensor([0.0, 0.5, 0.0], dtype=torch.float64), atol=1e-9)
+
+
+def test_rotation_between_and_kabsch():
+    g = torch.Generator().manual_seed(1)
+    u, v = torch.randn(2, 3, generator=g, dtype=torch.float64)
+    Rb = rot.rotation_between(u, v)
+    assert torch.allclose(Rb @ rot.normalize(u), rot.normalize(v), atol=1e-9)
+    assert torch.allclose(rot.rotation_between(u, -u) @ rot.normalize(u), -rot.normalize(u), atol=1e-9)
+    Rt = rot.axis_angle_to_matrix(torch.tensor([0.3, -1.0, 0.5], dtype=torch.float64))
+    src = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    assert torch.allclose(rot.kabsch(src, src @ Rt.T), Rt, atol=1e-9)
+
+
+def test_shape_zero_is_average_and_components_do_what_they_say():
+    z = torch.zeros(SHAPE_DIM)
+    assert torch.allclose(rest_offsets(z, torch.float64), rest_offsets(None, torch.float64))
+    assert 1.6 < standing_height(None) < 1.8
+    tall = torch.zeros(SHAPE_DIM, dtype=torch.float64)
+    tall[0] = 1.0
+    assert abs(float(standing_height(tall)) - standing_height(None) - 0.10) < 1e-6
+    long_legs = torch.zeros(SHAPE_DIM)
+    long_legs[1] = 1.0
+    assert pelvis_height(rest_offsets(long_legs)) > pelvis_height(rest_offsets(None))
+    P = rest_positions(rest_offsets(None, torch.float64))
+    assert abs(float(P[:, 1].min()) - 0.02) < 1e-9  # toes at the foot clearance
+    assert (P[[1, 13, 16], 0] > 0).all()  # left side is +X
+
+
+def test_fk_batched_any_shape_and_dtype():
+    g = torch.Generator().manual_seed(0)
+    for dtype in (torch.float32, torch.float64):
+        lead = (2, 3, 4)
+        rr = rot.axis_angle_to_matrix(torch.randn(*lead, 3, generator=g).to(dtype))
+        lr = rot.axis_angle_to_matrix(torch.randn(*lead, 21, 3, generator=g).to(dtype) * 0.5)
+        root = torch.randn(*lead, 3, generator=g).to(dtype)
+        off = rest_offsets(torch.randn(*lead, SHAPE_DIM, generator=g), dtype)
+        J, G = forward_kinematics(root, rr, lr, off)
+        assert J.shape == (*lead, 22, 3) and G.shape == (*lead, 22, 3, 3) and J.dtype == dtype
+        # bone lengths equal the offsets' lengths whatever the pose
+        bones = (J[..., 1:, :] - J[..., PARENTS[1:], :]).norm(dim=-1)
+        assert torch.allclose(bones, off[..., 1:, :].norm(dim=-1), atol=1e-5)
+    # identity pose reproduces the rest positions
+    off = rest_offsets(None, torch.float64)
+    P = rest_positions(off)
+    J, _ = forward_kinematics(P[0], torch.eye(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64).repeat(21, 1, 1), off)
+    assert torch.allclose(J, P)
+
+
+def test_shape_validation():
+    with pytest.raises(ValueError, match="body shape must have"):
+        rest_offsets(torch.zeros(3))

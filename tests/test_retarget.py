@@ -1,0 +1,104 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from avatar_motor.body import rotations as rot
+from avatar_motor.body.skeleton import JOINT_NAMES, PARENTS, forward_kinematics, rest_offsets
+from avatar_motor.data.motion_state import canonicalize, facing_yaw, joints_of, states_from_motion
+from avatar_motor.data.retarget import Retargeted, load_mapping_file, resample, retarget
+from avatar_motor.io.bvh import read_bvh
+from avatar_motor.viz import contact_sheet
+
+from .fixture_tools import FIXTURES, foreign_bvh, procedural_walk
+
+
+def joints(r: Retargeted) -> torch.Tensor:
+    q = rot.quat_to_matrix(torch.from_numpy(r.quats).double())
+    return forward_kinematics(torch.from_numpy(r.root_pos).double(), q[:, 0], q[:, 1:], rest_offsets(None, torch.float64))[0]
+
+
+def check_person(J: torch.Tensor):
+    """Feet on the ground when standing, constant bones, faces +Z after canonicalization."""
+    T = J.shape[0]
+    feet = J[:, [7, 8, 10, 11], 1]
+    foot_speed = (J[1:, [10, 11]] - J[:-1, [10, 11]]).norm(dim=-1).min(-1).values * 30
+    standing = torch.cat((foot_speed, foot_speed[-1:])) < 0.3  # a foot is (nearly) still
+    assert standing.any()
+    assert (feet.min(-1).values[standing] - 0.02).abs().max() < 0.02, "lowest foot not within 2 cm of the ground"
+    bones = (J[:, 1:] - J[:, PARENTS[1:]]).norm(dim=-1)
+    assert (bones.max(0).values - bones.min(0).values).max() < 1e-6
+    Rq = torch.eye(3, dtype=torch.float64).repeat(T, 21, 1, 1)
+    states = states_from_motion(J[:, 0], torch.eye(3, dtype=torch.float64).repeat(T, 1, 1), Rq, rest_offsets(None, torch.float64))
+    states[..., 135:201] = J.reshape(T, 66)
+    xc, _ = canonicalize(states)
+    assert abs(float(facing_yaw(joints_of(xc[0])))) < 1e-6
+    assert float(joints_of(xc[0])[0, 0]) == pytest.approx(0, abs=1e-9)
+
+
+@pytest.mark.parametrize("naming", ["lafan1", "cmu", "mixamo"])
+def test_fixture_retargets_preserving_world_bone_directions(naming, artifacts):
+    r = retarget(read_bvh(FIXTURES / f"walk_{naming}.bvh"))
+    assert r.info["skeleton"] == naming
+    assert r.info["unit"] == {"lafan1": "cm", "cmu": "in", "mixamo": "cm"}[naming]
+    J = joints(r)
+    root, G = procedural_walk()
+    local = torch.stack([G[:, PARENTS[k]].transpose(-1, -2) @ G[:, k] for k in range(1, 22)], 1)
+    Jref = forward_kinematics(root, G[:, 0], local, rest_offsets(None, torch.float64))[0]
+    lift = torch.tensor([0, r.info["lift_m"], 0], dtype=torch.float64)
+    assert (J - Jref - lift).abs().max() < 1e-4
+    check_person(J)
+    contact_sheet([J.numpy()], artifacts / f"retarget_{naming}.png", titles=[naming])
+
+
+def test_committed_fixtures_are_what_the_tool_makes():
+    for naming in ("lafan1", "cmu", "mixamo"):
+        b = read_bvh(FIXTURES / f"walk_{naming}.bvh")
+        f = foreign_bvh(naming)
+        P, _ = b.global_transforms()
+        Pf, _ = f.global_transforms()
+        assert np.allclose(P, Pf[:, [f.names.index(n) for n in b.names]], atol=1e-3)
+
+
+def test_resample_60_to_30_fps():
+    b = foreign_bvh("lafan1", frames=61)
+    b.frame_time = 1 / 60.0
+    r = retarget(b)
+    r30 = resample(r, 30.0)
+    assert r30.root_pos.shape[0] == 31 and r30.fps == 30.0
+    assert np.allclose(r30.root_pos, r.root_pos[::2], atol=1e-6)
+    assert np.allclose(np.abs((r30.quats * r.quats[::2]).sum(-1)), 1.0, atol=1e-5)
+    # halfway frames slerp between neighbours
+    b.frame_time = 1 / 45.0
+    r45 = resample(retarget(b), 30.0)
+    assert r45.root_pos.shape[0] == 41
+
+
+def test_user_mapping_file(tmp_path):
+    b = read_bvh(FIXTURES / "walk_lafan1.bvh")
+    b.names = [f"bone{i}" for i in range(len(b.names))]
+    import json
+    from tests.fixture_tools import SKELETONS, _full_names
+    names = _full_names(SKELETONS["lafan1"])
+    orig = read_bvh(FIXTURES / "walk_lafan1.bvh").names
+    mp = {c: f"bone{orig.index(n)}" for c, n in names.items()}
+    f = tmp_path / "map.json"
+    f.write_text(json.dumps(mp))
+    r = retarget(b, load_mapping_file(f))
+    assert r.info["skeleton"] == "user"
+    assert np.allclose(r.root_pos, retarget(read_bvh(FIXTURES / "walk_lafan1.bvh")).root_pos, atol=1e-6)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"pelvis": "bone0"}))
+    with pytest.raises(ValueError, match="lacks"):
+        load_mapping_file(bad)
+
+
+def test_bandai_clip(bandai, artifacts):
+    r = retarget(read_bvh(bandai / "dataset-1" / "data" / "dataset-1_walk_normal_001.bvh"))
+    assert r.info["skeleton"] == "bandai" and r.info["unit"] == "cm"
+    J = joints(r)
+    check_person(J)
+    # Bandai has Spine and Chest; our spine2 sits between them: the bend is spread
+    assert (J[:, 6] - 0.5 * (J[:, 3] + J[:, 9])).norm(dim=-1).max() < 0.1
+    contact_sheet([J.numpy()], artifacts / "retarget_bandai.png", titles=["bandai walk"])
