@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+DEFAULT_MODEL = Path(__file__).resolve().parents[2] / "models" / "primal-bandai"
+
 
 def _train(a) -> int:
     from .train.trainer import TrainConfig, Trainer
@@ -33,6 +35,91 @@ def _data_import(a) -> int:
     return 0
 
 
+def _open_cache(dataset: str | None, clip: str):
+    from .data.cache import MotionCache, list_caches
+
+    paths = list_caches() if dataset is None else [Path(dataset) if dataset.endswith(".npz") else None]
+    if dataset is not None and paths[0] is None:
+        from .data.cache import default_cache_dir
+        paths = [default_cache_dir() / f"{dataset}.npz"]
+    if not paths or not paths[0].exists():
+        raise FileNotFoundError("no motion cache found; run 'avatar-motor data import PATH' first")
+    for p in paths:
+        c = MotionCache.load(p)
+        try:
+            return c, c.find(clip)
+        except KeyError:
+            continue
+    raise KeyError(f"no clip matching {clip!r} in {[str(p) for p in paths]}; 'avatar-motor data list' shows the clips")
+
+
+def _data_show(a) -> int:
+    import torch
+
+    from .body import rotations as rot
+    from .body.skeleton import forward_kinematics, rest_offsets
+    from .viz import contact_sheet
+
+    cache, i = _open_cache(a.dataset, a.clip)
+    root, quats = cache.clip(i)
+    lo, _, hi = (a.frames or ":").partition(":")
+    lo, hi = int(lo or 0), int(hi or len(root))
+    if not 0 <= lo < hi <= len(root):
+        raise ValueError(f"--frames {a.frames} is outside the clip's 0:{len(root)}")
+    R = rot.quat_to_matrix(torch.from_numpy(quats[lo:hi]).double())
+    J, _ = forward_kinematics(torch.from_numpy(root[lo:hi]).double(), R[:, 0], R[:, 1:], rest_offsets(None, torch.float64))
+    clip = cache.clips[i]
+    contact_sheet([J.numpy()], a.png, titles=[Path(clip["key"]).stem], frames_per_row=a.columns)
+    print(f"{a.png}: {clip['key']} frames {lo}:{hi} ({(hi - lo) / 30:.1f} s), labels {clip['labels']}")
+    return 0
+
+
+def _data_list(a) -> int:
+    from .data.cache import MotionCache, format_summary, list_caches, summarize
+
+    caches = list_caches()
+    if not caches:
+        print("no motion cache yet; run 'avatar-motor data import PATH'")
+    for p in caches:
+        c = MotionCache.load(p)
+        print(format_summary({**summarize(c), "path": str(p), "skipped": c.meta.get("skipped", [])}))
+        if a.clips:
+            for clip in c.clips:
+                print(f"    {clip['key']}  {clip['frames']} frames  {clip['labels']}")
+    return 0
+
+
+def _caches(names: list[str] | None):
+    from .data.cache import MotionCache
+    from .train.trainer import resolve_caches
+
+    return [MotionCache.load(p) for p in resolve_caches(names or ["dataset-1", "dataset-2"])]
+
+
+def _runtime_config(a):
+    from .runtime.crowd import RuntimeConfig
+
+    cfg = RuntimeConfig()
+    if getattr(a, "steps", None):
+        cfg.steps = a.steps
+    if getattr(a, "no_processing", False):
+        cfg.reproject = cfg.snap = cfg.inertialize = False
+    return cfg
+
+
+def _eval_realism(a) -> int:
+    from .eval.realism import format_realism, realism, save_json
+    from .model.checkpoint import load_checkpoint
+
+    motor = load_checkpoint(a.model)
+    r = realism(motor, _caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a), a.stability_seconds,
+                sheet=a.png, export_dir=a.export)
+    print(format_realism(r))
+    if a.json:
+        save_json(r, a.json)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avatar-motor", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -55,6 +142,31 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--mapping", help="JSON file {canonical joint: source joint} for unknown skeletons")
     i.add_argument("--unit", choices=["m", "dm", "cm", "mm", "in", "ft"], help="override unit detection")
     i.set_defaults(func=_data_import)
+    sh = d.add_parser("show", help="draw a stick-figure contact sheet of a cached clip")
+    sh.add_argument("clip", help="clip file name (or part of it), e.g. dataset-1_walk_normal_001")
+    sh.add_argument("--frames", help="a:b, frames of the clip at 30 fps (default: all)")
+    sh.add_argument("--png", required=True)
+    sh.add_argument("--dataset", help="cache name (default: search all)")
+    sh.add_argument("--columns", type=int, default=8)
+    sh.set_defaults(func=_data_show)
+    ls = d.add_parser("list", help="list the motion caches (and with --clips their clips)")
+    ls.add_argument("--clips", action="store_true")
+    ls.set_defaults(func=_data_list)
+
+    ev = sub.add_parser("eval", help="measure a model").add_subparsers(dest="ecmd", required=True)
+    er = ev.add_parser("realism", help="ASR, ANCR, naturalness, jitter, alive ratio and a 60-s stability check")
+    er.add_argument("--model", default=str(DEFAULT_MODEL))
+    er.add_argument("--n", type=int, default=64)
+    er.add_argument("--seconds", type=float, default=8.0)
+    er.add_argument("--stability-seconds", type=float, default=60.0)
+    er.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
+    er.add_argument("--no-processing", action="store_true", help="turn off re-projection, snapping and inertialization")
+    er.add_argument("--seed", type=int, default=0)
+    er.add_argument("--data", nargs="*", help="motion caches (default: dataset-1 dataset-2)")
+    er.add_argument("--png", help="contact sheet of a few rollouts")
+    er.add_argument("--export", help="folder for BVH files of a few rollouts")
+    er.add_argument("--json", help="write the figures as JSON")
+    er.set_defaults(func=_eval_realism)
     return p
 
 

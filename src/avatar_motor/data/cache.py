@@ -17,7 +17,8 @@ import re
 import tarfile
 import time
 import zipfile
-from concurrent.futures import ProcessPoolExecutor
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -143,6 +144,21 @@ def convert_clip(key: str, data: bytes, mapping: dict | None = None, unit: str |
     return (r.root_pos, r.quats), meta
 
 
+class _InProcess:
+    """The executor interface, run inline (one worker: no process start-up cost)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        f = Future()
+        f.set_result(fn(*args))
+        return f
+
+
 def _convert_job(args):
     key, data, mapping, unit = args
     return key, convert_clip(key, data, mapping, unit)
@@ -180,7 +196,9 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
 
     stamps = {}
     bar = tqdm(desc=f"import {name}", unit="clip", disable=not progress)
-    with ProcessPoolExecutor(workers) as pool:
+    # spawn, not fork: a forked child of a process whose torch thread pool already ran can deadlock
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) if workers > 1 else _InProcess()
+    with pool:
         pending = []
 
         def drain(limit):
@@ -231,8 +249,13 @@ def summarize(cache: MotionCache) -> dict:
 
 
 def format_summary(s: dict) -> str:
-    lines = [f"{s['path']}: {s['clips']} clips ({s.get('new', 0)} new, {s.get('unchanged', 0)} unchanged), "
-             f"{s['frames']} frames = {s['minutes']:.1f} min ({s['minutes'] / 60:.2f} h) at 30 fps, in {s.get('seconds', 0):.1f} s"]
+    head = f"{s['path']}: {s['clips']} clips"
+    if "new" in s:
+        head += f" ({s['new']} new, {s['unchanged']} unchanged)"
+    head += f", {s['frames']} frames = {s['minutes']:.1f} min ({s['minutes'] / 60:.2f} h) at 30 fps"
+    if "seconds" in s:
+        head += f", imported in {s['seconds']:.1f} s"
+    lines = [head]
     for k, counts in s["labels"].items():
         lines.append(f"  {k}: " + ", ".join(f"{v} {n}" for v, n in sorted(counts.items(), key=lambda kv: -kv[1])))
     sk = s.get("skipped", [])

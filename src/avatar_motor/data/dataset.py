@@ -124,6 +124,7 @@ class Normalizer:
     @staticmethod
     def compute(ds: SegmentDataset, n: int = 20000, seed: int = 0) -> "Normalizer":
         g = torch.Generator().manual_seed(seed)
+        n = min(n, max(2000, 10 * len(ds)))  # a small dataset needs fewer draws to be covered
         xs = torch.cat([ds.sample(min(2000, n), g)[0].reshape(-1, STATE_DIM) for _ in range(max(1, n // 2000))])
         return Normalizer(xs.mean(0), xs.std(0).clamp_min(1e-2))
 

@@ -204,7 +204,11 @@ class Trainer:
         self.opt.step()
         self.step += 1
         self.ema.update(self.net, active=self.step > cfg.ema_start)
-        return {k: float(v.detach()) for k, v in losses.items()}
+        out = torch.stack([v.detach() for v in losses.values()])
+        if self.world > 1:  # report the global batch's losses, not this rank's half
+            dist.all_reduce(out)
+            out /= self.world
+        return {k: float(v) for k, v in zip(losses, out)}
 
     def lr_at(self, step: int) -> float:
         cfg = self.cfg

@@ -1,0 +1,146 @@
+"""`avatar-motor eval realism`: autoregressive rollouts from held-out initial states with random
+body shapes (PRIMAL §5.1.1), measured against the held-out real motion."""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import forward_kinematics, rest_offsets
+from ..data.cache import MotionCache, is_held_out
+from ..data.dataset import SegmentConfig, SegmentDataset
+from ..data.motion_state import FPS, joints_of, unpack
+from ..model.checkpoint import Motor
+from ..runtime.crowd import Crowd, RuntimeConfig
+from . import metrics as M
+
+
+@dataclass
+class RealData:
+    """Held-out clips on the average body: joints (list of (T, 22, 3)) and local rotations."""
+    joints: list[torch.Tensor]
+    local_rot: list[torch.Tensor]
+
+    @staticmethod
+    def load(caches: list[MotionCache], max_clips: int = 200) -> "RealData":
+        Js, Rs = [], []
+        off = rest_offsets(None, torch.float64)
+        for c in caches:
+            for i, clip in enumerate(c.clips):
+                if not is_held_out(clip["key"]) or len(Js) >= max_clips:
+                    continue
+                root, q = c.clip(i)
+                R = rot.quat_to_matrix(torch.from_numpy(q).double())
+                J, _ = forward_kinematics(torch.from_numpy(root).double(), R[:, 0], R[:, 1:], off)
+                Js.append(J.float())
+                Rs.append(R[:, 1:].float())
+        if not Js:
+            raise ValueError("no held-out clip in the motion caches; import the Bandai data first")
+        return RealData(Js, Rs)
+
+    def windows(self, seconds: float) -> torch.Tensor:
+        """Non-overlapping windows (W, T, 22, 3) of real motion."""
+        T = int(seconds * FPS)
+        out = [J[s:s + T] for J in self.joints for s in range(0, len(J) - T + 1, T)]
+        if not out:  # clips shorter than the window: use what there is
+            return torch.nn.utils.rnn.pad_sequence([J[:T] for J in self.joints], batch_first=True)
+        return torch.stack(out)
+
+
+def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int, cfg: RuntimeConfig, seed: int,
+            controls=None) -> torch.Tensor:
+    """Batched autoregressive rollout: (B, 1 + frames, 267) world states, init first.
+    controls(crowd, segment_index) may set goals/impulses before each segment."""
+    crowd = Crowd(motor, cfg, seed)
+    ids = [crowd.spawn(init[k], shapes[k]) for k in range(len(init))]
+    segs = [init[:, None].float()]
+    n = 0
+    while sum(s.shape[1] for s in segs) < frames + 1:
+        if controls is not None:
+            controls(crowd, n)
+        out = crowd.step_segment()
+        segs.append(torch.stack([out[i] for i in ids]))
+        n += 1
+    return torch.cat(segs, 1)[:, : frames + 1]
+
+
+def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float = 8.0, seed: int = 0,
+            cfg: RuntimeConfig | None = None, stability_seconds: float = 60.0, stability_n: int = 16,
+            sheet: str | Path | None = None, export_dir: str | Path | None = None, progress=print) -> dict:
+    cfg = cfg or RuntimeConfig()
+    g = torch.Generator().manual_seed(seed)
+    held = SegmentDataset(caches, SegmentConfig(frames=15, split="heldout", mirror=False))
+    x, shapes = held.sample(n, g)
+    init = x[:, 0]
+    t0 = time.time()
+    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed)
+    gen_time = time.time() - t0
+    J = joints_of(X)
+    real = RealData.load(caches)
+    Jr = real.windows(seconds)
+    # pose naturalness: nearest real pose, generated vs real (disjoint halves of the held-out poses)
+    real_poses = torch.cat([M.pose_features(R) for R in real.local_rot])
+    perm = torch.randperm(len(real_poses), generator=g)
+    ref, real_q = real_poses[perm[: len(perm) // 2]][:20000], real_poses[perm[len(perm) // 2:]][:4000]
+    gen_poses = M.pose_features(unpack(X[:, 1:].reshape(-1, X.shape[-1])).local_rot)
+    gen_poses = gen_poses[torch.randperm(len(gen_poses), generator=g)[:4000]]
+    d_gen = float(M.nn_pose_distance(gen_poses, ref).mean())
+    d_real = float(M.nn_pose_distance(real_q, ref).mean())
+    res = {
+        "n": n, "seconds": seconds, "steps": cfg.steps,
+        "ASR": M.asr(J), "ASR_real": M.asr(Jr),
+        "ANCR": M.ancr(J), "ANCR_real": M.ancr(Jr),
+        "naturalness_ratio": d_gen / d_real, "pose_nn_dist": d_gen, "pose_nn_dist_real": d_real,
+        "jitter_ratio": M.jitter(J) / M.jitter(Jr), "jitter": M.jitter(J), "jitter_real": M.jitter(Jr),
+        "alive": M.alive_ratio(J), "alive_real": M.alive_ratio(Jr),
+        "seconds_per_rollout_batch": gen_time,
+    }
+    if stability_seconds > 0:
+        k = min(stability_n, n)
+        Xs = rollout(motor, init[:k], shapes[:k], int(stability_seconds * FPS), cfg, seed + 1)
+        Js = joints_of(Xs)
+        pel = Js[..., 0, 1]
+        res.update({
+            "stability_seconds": stability_seconds, "stability_n": k,
+            "stable_no_nan": bool(torch.isfinite(Xs).all()),
+            "stable_pelvis_band": [float(pel.min()), float(pel.max())],
+            "stable_height_ok": bool(((pel > 0.15) & (pel < 1.6)).all()),
+            "frozen_rollouts": int(M.frozen(Js).sum()),
+            "alive_last_20s": M.alive_ratio(Js[:, -int(20 * FPS):]),
+        })
+    if sheet:
+        from ..viz import contact_sheet
+        contact_sheet([J[k].numpy() for k in range(min(6, n))], sheet, titles=[f"rollout {k}" for k in range(min(6, n))])
+    if export_dir:
+        from ..io.export import write_motion
+        d = Path(export_dir)
+        for k in range(min(4, n)):
+            write_motion(d / f"rollout_{k}.bvh", X[k], shapes[k])
+    return res
+
+
+def format_realism(r: dict) -> str:
+    rows = [
+        ("ASR (skating, lower is better)", f"{r['ASR']:.3f}", f"{r['ASR_real']:.3f}", "<= 0.05"),
+        ("ANCR (non-collision)", f"{r['ANCR']:.3f}", f"{r['ANCR_real']:.3f}", ">= 0.99"),
+        ("pose naturalness ratio", f"{r['naturalness_ratio']:.2f}", "1.00", "<= 1.5"),
+        ("jitter ratio", f"{r['jitter_ratio']:.2f}", "1.00", "<= 1.5"),
+        ("alive ratio", f"{r['alive']:.2f}", f"{r['alive_real']:.2f}", "within 0.15 of real"),
+    ]
+    out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps",
+           f"{'metric':34s} {'generated':>10s} {'real':>8s}  goal"]
+    out += [f"{a:34s} {b:>10s} {c:>8s}  {d}" for a, b, c, d in rows]
+    if "stability_seconds" in r:
+        out.append(f"stability {r['stability_seconds']:.0f} s x {r['stability_n']}: no NaN {r['stable_no_nan']}, "
+                   f"pelvis height {r['stable_pelvis_band'][0]:.2f}..{r['stable_pelvis_band'][1]:.2f} m "
+                   f"(ok {r['stable_height_ok']}), frozen rollouts {r['frozen_rollouts']}, alive in last 20 s {r['alive_last_20s']:.2f}")
+    return "\n".join(out)
+
+
+def save_json(r: dict, path: str | Path) -> None:
+    Path(path).write_text(json.dumps(r, indent=1))
+

@@ -1,0 +1,290 @@
+"""Avatars and crowds: PRIMAL's Algorithm 1 for many bodies in one batched forward pass.
+
+One segment per step (for the avatars whose queue of frames ran out):
+  1 canonicalize the initial state (+ optional joint re-projection)
+  2 condition embedding (inside the denoiser)
+  3 reverse diffusion with optional guidance; snap to ground; inertialization
+  4 back to world, queue the 15 new frames.
+A command (impulse, push, goal) takes effect at the next frame: the avatar's queued frames are
+dropped and its next segment starts from the frame it is showing now.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
+from ..data.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
+from ..model.checkpoint import Motor
+from .guidance import facing_loss_and_grad, move_loss_and_grad
+from .processing import inertialize, reproject, snap_to_ground
+
+
+def _joints(*names: str) -> list[int]:
+    return [JOINT_INDEX[n] for n in names]
+
+
+# PRIMAL supplementary Table A1, body-centric (X left, Y up, Z forward). The table's velocities
+# are scaled by IMPULSE_SCALE into m/s (PRIMAL's own velocities are per-frame displacements).
+IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
+    "left_kick": (_joints("left_knee", "left_ankle"), (0.0, 0.0, 0.5)),
+    "right_kick": (_joints("right_knee", "right_ankle"), (0.0, 0.0, 0.5)),  # the table's row names left joints
+    "forward_run": (_joints("pelvis", "neck", "left_shoulder", "right_shoulder"), (0.0, 0.0, 1.0)),
+    "back_flip": (_joints("head"), (0.0, 0.0, -1.0)),
+    "forward_roll": (_joints("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow"), (0.0, -0.5, 0.5)),
+}
+IMPULSE_SCALE = 10.0
+
+
+@dataclass
+class RuntimeConfig:
+    steps: int = 10  # denoising steps per segment (PRIMAL: 10 "not visibly inferior" to 50)
+    reproject: bool = True
+    snap: bool = True
+    inertialize: bool = True
+    inertia_halflife: float = 0.1
+    move_weight: float = 50.0  # PRIMAL §9.2 defaults
+    facing_weight: float = 25.0
+    eta: float = 1.0  # 1 = DDPM ancestral sampling, 0 = DDIM
+
+
+@dataclass
+class AvatarState:
+    id: int
+    state: torch.Tensor  # (267,) world, the frame being shown
+    shape: torch.Tensor  # (SHAPE_DIM,)
+    queue: list = field(default_factory=list)  # generated frames not yet shown, (267,) each
+    v_goal: torch.Tensor | None = None  # (3,) world m/s
+    facing_goal: torch.Tensor | None = None  # (3,) world unit
+    pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
+
+
+def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: float = 0.0) -> torch.Tensor:
+    """A neutral standing state (arms lowered, zero velocity) on the ground: an initial state that
+    needs no data. yaw 0 faces +Z."""
+    off = rest_offsets(shape, torch.float64)
+    local = torch.eye(3, dtype=torch.float64).repeat(21, 1, 1)
+    for name, angle in (("left_shoulder", -1.25), ("right_shoulder", 1.25)):
+        local[JOINT_INDEX[name] - 1] = rot.euler_to_matrix(torch.tensor([0.0, 0.0, angle], dtype=torch.float64), "XYZ")
+    for name, angle in (("left_elbow", 0.25), ("right_elbow", -0.25)):
+        local[JOINT_INDEX[name] - 1] = rot.euler_to_matrix(torch.tensor([0.0, angle, 0.0], dtype=torch.float64), "XYZ")
+    root_rot = rot.yaw_matrix(torch.tensor(float(yaw), dtype=torch.float64))
+    root = rest_positions(off)[0].clone()
+    root[0], root[2] = position
+    J, _ = forward_kinematics(root, root_rot, local, off)
+    return pack(root, root_rot, local, J, torch.zeros_like(J)).float()
+
+
+def validate_vector(v, n: int, what: str) -> torch.Tensor:
+    t = torch.as_tensor(v, dtype=torch.float32).flatten()
+    if t.numel() != n or not torch.isfinite(t).all():
+        raise ValueError(f"{what} must be {n} finite numbers, got {v!r}")
+    return t
+
+
+class Crowd:
+    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0):
+        self.motor = motor
+        self.cfg = config or RuntimeConfig()
+        self.gen = torch.Generator().manual_seed(seed)
+        self.avatars: dict[int, AvatarState] = {}
+        self._next_id = 0
+        self.frames_per_segment = motor.net.cfg.frames
+        self.timings: dict[str, float] = {}
+
+    # ------------------------------------------------------------ avatars
+    def spawn(self, state: torch.Tensor | None = None, shape: torch.Tensor | None = None,
+              position=(0.0, 0.0), yaw: float = 0.0) -> int:
+        shape = torch.zeros(SHAPE_DIM) if shape is None else validate_vector(shape, SHAPE_DIM, "body shape")
+        if state is None:
+            state = standing_state(shape, position, yaw)
+        state = validate_vector(state, STATE_DIM, "initial state")
+        i = self._next_id
+        self._next_id += 1
+        self.avatars[i] = AvatarState(i, state, shape)
+        return i
+
+    def remove(self, i: int) -> None:
+        self._get(i)
+        del self.avatars[i]
+
+    def _get(self, i: int) -> AvatarState:
+        if i not in self.avatars:
+            raise KeyError(f"no avatar {i}; avatars are {sorted(self.avatars)}")
+        return self.avatars[i]
+
+    def interrupt(self, i: int) -> None:
+        """Drop the queued frames so the next segment starts from the frame shown now."""
+        self._get(i).queue.clear()
+
+    # ------------------------------------------------------------ controls
+    def set_goal(self, i: int, velocity=None, facing=None) -> None:
+        """velocity: world (vx, vz) m/s or None to release; facing: world (fx, fz) or None (= along velocity)."""
+        a = self._get(i)
+        if velocity is None:
+            a.v_goal, a.facing_goal = None, None
+        else:
+            v = validate_vector(velocity, 2, "goal velocity (vx, vz)")
+            a.v_goal = torch.tensor([v[0], 0.0, v[1]])
+            f = validate_vector(facing, 2, "facing (fx, fz)") if facing is not None else v
+            n = float(f.norm())
+            a.facing_goal = torch.tensor([f[0] / n, 0.0, f[1] / n]) if n > 1e-6 else None
+        self.interrupt(i)
+
+    def impulse(self, i: int, preset: str, scale: float = 1.0) -> None:
+        """Apply a Table A1 preset (body-centric) at the next frame."""
+        if preset not in IMPULSE_PRESETS:
+            raise ValueError(f"unknown impulse preset {preset!r}; presets are {sorted(IMPULSE_PRESETS)}")
+        if not math.isfinite(scale):
+            raise ValueError("impulse scale must be finite")
+        joints, v = IMPULSE_PRESETS[preset]
+        a = self._get(i)
+        R = canonical_transform(a.state[None].double()).R[0].float()  # body -> world yaw
+        vw = R @ (torch.tensor(v) * IMPULSE_SCALE * scale)
+        dv = torch.zeros(22, 3)
+        dv[joints] = vw
+        self._add_velocity(a, dv)
+
+    def push(self, i: int, joint: int | str, velocity, frame: str = "world") -> None:
+        """Add a velocity (m/s) to one joint: a poke from a user. frame 'world' or 'body'."""
+        a = self._get(i)
+        j = JOINT_NAMES.index(joint) if isinstance(joint, str) and joint in JOINT_NAMES else joint
+        if not isinstance(j, int) or not 0 <= j < 22:
+            raise ValueError(f"unknown joint {joint!r}; use an index 0..21 or one of {JOINT_NAMES}")
+        v = validate_vector(velocity, 3, "push velocity")
+        if frame == "body":
+            v = canonical_transform(a.state[None].double()).R[0].float() @ v
+        elif frame != "world":
+            raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
+        dv = torch.zeros(22, 3)
+        dv[j] = v
+        self._add_velocity(a, dv)
+
+    def _add_velocity(self, a: AvatarState, dv: torch.Tensor) -> None:
+        a.pending_velocity = dv if a.pending_velocity is None else a.pending_velocity + dv
+        self.interrupt(a.id)
+
+    # ------------------------------------------------------------ generation
+    def next_frames(self) -> dict[int, torch.Tensor]:
+        """Advance every avatar by one frame (generating a segment for those that need one) and
+        return the frame each now shows."""
+        need = [a for a in self.avatars.values() if not a.queue]
+        if need:
+            self._generate(need)
+        out = {}
+        for a in self.avatars.values():
+            a.state = a.queue.pop(0)
+            out[a.id] = a.state
+        return out
+
+    def step_segment(self) -> dict[int, torch.Tensor]:
+        """Generate one whole segment for every avatar from its current state (offline use)."""
+        for a in self.avatars.values():
+            a.queue.clear()
+        self._generate(list(self.avatars.values()))
+        out = {}
+        for a in self.avatars.values():
+            out[a.id] = torch.stack(a.queue)
+            a.state = a.queue[-1]
+            a.queue.clear()
+        return out
+
+    @torch.no_grad()
+    def _generate(self, avs: list[AvatarState]) -> None:
+        import time
+
+        cfg, motor = self.cfg, self.motor
+        t0 = time.perf_counter()
+        x0 = torch.stack([a.state for a in avs]).double()
+        for k, a in enumerate(avs):
+            if a.pending_velocity is not None:
+                x0[k, SLICES["velocities"]] += a.pending_velocity.double().flatten()
+                a.pending_velocity = None
+        shapes = torch.stack([a.shape for a in avs])
+        offsets = rest_offsets(shapes, torch.float64)
+        # 1 canonicalize (+ re-projection)
+        tf = canonical_transform(x0)
+        Rt = tf.R.transpose(-1, -2)
+        x0c = apply_transform(x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
+        if cfg.reproject:
+            x0c = reproject(x0c, offsets)
+        t1 = time.perf_counter()
+        # 2 condition, 3 diffusion
+        norm = motor.norm
+        x0n = norm.encode(x0c.float())
+        guide = self._guidance(avs, Rt.float())
+        cond_x0 = x0n
+
+        def denoise(x_t, t):
+            return motor.net(t, x_t, cond_x0)
+
+        B, N = len(avs), self.frames_per_segment
+        seg_n = motor.diffusion.sample(denoise, (B, N, STATE_DIM), cfg.steps, self.gen, guide, cfg.eta)
+        t2 = time.perf_counter()
+        seg = norm.decode(seg_n).double()
+        if cfg.snap:
+            seg = snap_to_ground(seg)
+        if cfg.inertialize:
+            seg = inertialize(x0c, seg, cfg.inertia_halflife)
+        # 4 back to world
+        seg_w = apply_transform(seg, tf.R, tf.t).float()
+        for k, a in enumerate(avs):
+            a.queue = list(seg_w[k].unbind(0))
+        t3 = time.perf_counter()
+        self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": B}
+
+    def _guidance(self, avs: list[AvatarState], Rt: torch.Tensor):
+        cfg = self.cfg
+        has_v = [a.v_goal is not None for a in avs]
+        has_f = [a.facing_goal is not None for a in avs]
+        if not any(has_v) and not any(has_f):
+            return None
+        z = torch.zeros(3)
+        v_goal = torch.stack([Rt[k] @ (a.v_goal if a.v_goal is not None else z) for k, a in enumerate(avs)])
+        f_goal = torch.stack([Rt[k] @ (a.facing_goal if a.facing_goal is not None else z) for k, a in enumerate(avs)])
+        wv = torch.tensor(has_v, dtype=torch.float32)[:, None, None] * cfg.move_weight
+        wf = torch.tensor(has_f, dtype=torch.float32)[:, None, None] * cfg.facing_weight
+        norm = self.motor.norm
+
+        def guide(x0n):
+            x = norm.decode(x0n)
+            _, gv = move_loss_and_grad(x, v_goal)
+            _, gf = facing_loss_and_grad(x, f_goal)
+            # chain rule into normalized space: dL/dxn = dL/dx * std
+            return (wv * gv + wf * gf) * norm.std
+
+        return guide
+
+
+class Avatar:
+    """One body: a Crowd of one with a friendlier interface."""
+
+    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0,
+                 state: torch.Tensor | None = None, shape: torch.Tensor | None = None):
+        self.crowd = Crowd(motor, config, seed)
+        self.id = self.crowd.spawn(state, shape)
+
+    @property
+    def state(self) -> torch.Tensor:
+        return self.crowd.avatars[self.id].state
+
+    def next_frame(self) -> torch.Tensor:
+        return self.crowd.next_frames()[self.id]
+
+    def segment(self) -> torch.Tensor:
+        return self.crowd.step_segment()[self.id]
+
+    def rollout(self, frames: int) -> torch.Tensor:
+        return torch.stack([self.next_frame() for _ in range(frames)])
+
+    def set_goal(self, velocity=None, facing=None) -> None:
+        self.crowd.set_goal(self.id, velocity, facing)
+
+    def impulse(self, preset: str, scale: float = 1.0) -> None:
+        self.crowd.impulse(self.id, preset, scale)
+
+    def push(self, joint, velocity, frame: str = "world") -> None:
+        self.crowd.push(self.id, joint, velocity, frame)

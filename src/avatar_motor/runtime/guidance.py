@@ -1,0 +1,53 @@
+"""Classifier-based guidance with analytic gradients (PRIMAL §3.4.2, supplementary §9.2).
+
+Both losses act on the x0 estimate of a segment in its canonical frame, in real units:
+    L_move   = || mean_{frames, joints} Jdot - v_goal ||^2                         (Eq. 7)
+    L_facing = || z - r_goal ||^2, z the unit facing of the last frame from its hips (Eq. 8)
+Their gradients are written out by hand (no autograd in the sampling loop); tests compare them
+with autograd.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..body.skeleton import JOINT_INDEX
+from ..data.motion_state import SLICES
+
+_LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
+_J0 = SLICES["joints"].start
+_V0 = SLICES["velocities"].start
+
+
+def move_loss_and_grad(x: torch.Tensor, v_goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """x (B, N, 267) real units; v_goal (B, 3). Returns (loss (B,), dL/dx (B, N, 267))."""
+    B, N, _ = x.shape
+    vel = x[..., SLICES["velocities"]].reshape(B, N, 22, 3)
+    diff = vel.mean((1, 2)) - v_goal  # (B, 3)
+    grad = torch.zeros_like(x)
+    g = (2.0 / (22 * N)) * diff  # d/d(each joint velocity)
+    grad[..., SLICES["velocities"]] = g[:, None, None, :].expand(B, N, 22, 3).reshape(B, N, 66)
+    return (diff**2).sum(-1), grad
+
+
+def facing_of(x_last: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit horizontal facing (B, 3) of states (B, 267) and the unnormalized vector g = left x up."""
+    J = x_last[..., SLICES["joints"]].reshape(*x_last.shape[:-1], 22, 3)
+    left = J[..., _LH, :] - J[..., _RH, :]
+    g = torch.stack((-left[..., 2], torch.zeros_like(left[..., 0]), left[..., 0]), -1)
+    return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-6), g
+
+
+def facing_loss_and_grad(x: torch.Tensor, r_goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """x (B, N, 267); r_goal (B, 3) unit horizontal. Returns (loss (B,), dL/dx)."""
+    z, g = facing_of(x[:, -1])
+    d = z - r_goal
+    loss = (d**2).sum(-1)
+    n = g.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    # dz/dg = (I - z z^T)/|g|  ->  dL/dg = (I - z z^T) 2 d / |g|
+    dg = (2 * d - z * (z * 2 * d).sum(-1, keepdim=True)) / n
+    # g = (-l_z, 0, l_x): dL/dl_x = dL/dg_z, dL/dl_z = -dL/dg_x
+    dl = torch.stack((dg[:, 2], torch.zeros_like(dg[:, 0]), -dg[:, 0]), -1)
+    grad = torch.zeros_like(x)
+    grad[:, -1, _J0 + 3 * _LH:_J0 + 3 * _LH + 3] = dl
+    grad[:, -1, _J0 + 3 * _RH:_J0 + 3 * _RH + 3] = -dl
+    return loss, grad

@@ -1,0 +1,74 @@
+"""Test-time processing of PRIMAL supplementary §8.2.2: joint re-projection, snapping to the
+ground, and inertialization blending with Holden's decaying springs (Spring-It-On)."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import FOOT_CLEARANCE, forward_kinematics
+from ..data.motion_state import FPS, SLICES, pack, unpack
+
+
+def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Replace the joint locations of states (B, 267) by the FK of their own rotations."""
+    u = unpack(x0)
+    J, _ = forward_kinematics(u.root_pos, u.root_rot, u.local_rot, offsets)
+    out = x0.clone()
+    out[..., SLICES["joints"]] = J.reshape(*x0.shape[:-1], 66)
+    return out
+
+
+def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.Tensor:
+    """Translate each segment (B, N, 267) vertically so its lowest joint over all frames sits at
+    `ground` (the height of a standing foot joint): over 0.5 s some joint touches the ground."""
+    J = seg[..., SLICES["joints"]].reshape(*seg.shape[:-1], 22, 3)
+    dy = ground - J[..., 1].amin((-1, -2))  # (B,)
+    out = seg.clone()
+    out[..., 1] += dy[:, None]
+    out[..., SLICES["joints"].start + 1:SLICES["joints"].stop:3] += dy[:, None, None]
+    return out
+
+
+def _damping(halflife: float) -> float:
+    return 4.0 * math.log(2.0) / max(halflife, 1e-5)
+
+
+def spring_decay(x: torch.Tensor, v: torch.Tensor, halflife: float, t: torch.Tensor) -> torch.Tensor:
+    """Critically damped decay of an offset x with velocity v after time t (broadcast on t)."""
+    y = _damping(halflife) / 2.0
+    j1 = v + x * y
+    e = torch.exp(-y * t)
+    return e * (x + j1 * t)
+
+
+def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1) -> torch.Tensor:
+    """Blend the start of generated frames seg (B, N, 267) into the initial state x0 (B, 267).
+
+    The offset between where x0 was heading (x0 + its velocity over one frame) and the first new
+    frame is applied in full at frame 1 and decays as a critically damped spring, for the root
+    position, the joint locations and every rotation (as rotation vectors). Velocities are then
+    recomputed as backward differences, so the result is a consistent state sequence.
+    """
+    B, N, _ = seg.shape
+    dt = 1.0 / FPS
+    t = (torch.arange(N, dtype=seg.dtype) * dt)[None, :, None]  # frame 1 -> t = 0
+    u0, u = unpack(x0), unpack(seg)
+    # positions: joints and root
+    J_expect = u0.joints + u0.velocities * dt
+    off_J = J_expect - u.joints[:, 0]
+    v_new = (u.joints[:, 1] - u.joints[:, 0]) / dt if N > 1 else torch.zeros_like(off_J)
+    off_v = u0.velocities - v_new
+    dJ = spring_decay(off_J.reshape(B, 1, 66), off_v.reshape(B, 1, 66), halflife, t).reshape(B, N, 22, 3)
+    joints = u.joints + dJ
+    root_pos = u.root_pos + dJ[:, :, 0]  # the root is the pelvis
+    # rotations: offset from the first new frame back to the initial state's rotation
+    R0 = torch.cat((u0.root_rot[:, None], u0.local_rot), 1)  # (B, 22, 3, 3)
+    R = torch.cat((u.root_rot[:, :, None], u.local_rot), 2)  # (B, N, 22, 3, 3)
+    off_r = rot.matrix_to_axis_angle(R0 @ R[:, 0].transpose(-1, -2))  # (B, 22, 3)
+    d_r = spring_decay(off_r[:, None], torch.zeros_like(off_r[:, None]), halflife, t[..., None])
+    R = rot.axis_angle_to_matrix(d_r) @ R
+    prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
+    vel = (joints - prev) * FPS
+    return pack(root_pos, R[:, :, 0], R[:, :, 1:], joints, vel)
