@@ -120,6 +120,155 @@ def _eval_realism(a) -> int:
     return 0
 
 
+def _timed_args(values: list[str] | None, what: str, parse) -> list[tuple[float, object]]:
+    """'VALUE@SECONDS' items (no @ = at 0 s) -> sorted [(seconds, parsed value)]."""
+    out = []
+    for item in values or []:
+        val, _, at = item.partition("@")
+        try:
+            sec = float(at) if at else 0.0
+        except ValueError:
+            raise ValueError(f"{what} {item!r}: the time after '@' must be seconds, e.g. {val}@2.5") from None
+        if not 0 <= sec < 1e6:
+            raise ValueError(f"{what} {item!r}: time must be >= 0 seconds")
+        out.append((sec, parse(val)))
+    return sorted(out, key=lambda x: x[0])
+
+
+def _parse_goal(text: str):
+    import math
+
+    if text.lower() in ("stop", "none", "free"):
+        return None
+    try:
+        vx, vz = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--goal {text!r} must be VX,VZ in m/s (e.g. 1.2,0) or 'free'") from None
+    if not (math.isfinite(vx) and math.isfinite(vz)):
+        raise ValueError(f"--goal {text!r} must be finite numbers")
+    return (vx, vz)
+
+
+def load_init(spec: str, shape=None):
+    """'FILE[:FRAME]' (BVH of any known skeleton, or an avatar-motor .npz) -> world state (267,)."""
+    import torch
+
+    from .body import rotations as rot
+    from .body.skeleton import rest_offsets
+    from .data.motion_state import states_from_motion
+    from .data.retarget import resample, retarget
+    from .io.bvh import read_bvh
+    from .io.export import read_npz_states
+
+    path, frame = spec, 0
+    if ":" in spec and spec.rsplit(":", 1)[1].isdigit():
+        path, f = spec.rsplit(":", 1)
+        frame = int(f)
+    if not Path(path).exists():
+        raise FileNotFoundError(f"--init {path}: no such file")
+    if path.lower().endswith(".npz"):
+        states, _ = read_npz_states(path)
+    else:
+        r = resample(retarget(read_bvh(path)), 30.0)
+        R = rot.quat_to_matrix(torch.from_numpy(r.quats).double())
+        states = states_from_motion(torch.from_numpy(r.root_pos).double(), R[:, 0], R[:, 1:], rest_offsets(shape, torch.float64)).float()
+    if not 0 <= frame < len(states):
+        raise ValueError(f"--init {spec}: frame {frame} is outside 0..{len(states) - 1}")
+    return states[frame]
+
+
+def _generate(a) -> int:
+    import torch
+
+    from .io.export import write_motion
+    from .model.checkpoint import load_checkpoint
+    from .runtime.crowd import IMPULSE_PRESETS, Crowd
+
+    impulses = _timed_args(a.impulse, "--impulse", lambda v: v)
+    for _, name in impulses:
+        if name not in IMPULSE_PRESETS:
+            raise ValueError(f"--impulse {name!r}: unknown preset; presets are {sorted(IMPULSE_PRESETS)}")
+    goals = _timed_args(a.goal, "--goal", _parse_goal)
+    if a.seconds <= 0 or a.seconds > 3600:
+        raise ValueError("--seconds must be in (0, 3600]")
+    out = Path(a.out)
+    if out.suffix.lower() not in (".bvh", ".glb", ".npz"):
+        raise ValueError(f"--out {out}: use a .bvh, .glb or .npz file name")
+    motor = load_checkpoint(a.model)
+    init = load_init(a.init) if a.init else None
+    crowd = Crowd(motor, _runtime_config(a), a.seed)
+    i = crowd.spawn(init)
+    frames = [crowd.avatars[i].state]
+    n = int(round(a.seconds * 30))
+    for f in range(1, n):
+        t = f / 30.0
+        while goals and goals[0][0] <= t:
+            crowd.set_goal(i, goals.pop(0)[1])
+        while impulses and impulses[0][0] <= t:
+            crowd.impulse(i, impulses.pop(0)[1])
+        frames.append(crowd.next_frames()[i])
+    X = torch.stack(frames)
+    write_motion(out, X, meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
+    print(f"{out}: {len(X)} frames ({len(X) / 30:.1f} s) from {motor.name}")
+    return 0
+
+
+def _serve(a) -> int:
+    import torch
+
+    from .model.checkpoint import load_checkpoint
+    from .serve.world import World
+
+    motor = load_checkpoint(a.model)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    world = World(motor, _runtime_config(a), a.seed)
+    if not 0 <= a.avatars <= 64:
+        raise ValueError("--avatars must be 0..64")
+    for k in range(a.avatars):
+        world.apply({"type": "spawn", "position": [1.2 * k - 0.6 * (a.avatars - 1), 0.0]}, log=False)
+    if a.headless:
+        return _serve_headless(a, world)
+    from .serve.server import Server
+
+    server = Server(world, a.host, a.port, a.token)
+    if a.open_browser:
+        import threading
+        import webbrowser
+        threading.Timer(1.5, lambda: webbrowser.open(f"http://{a.host}:{a.port}/")).start()
+    print(f"avatar-motor studio: http://{a.host}:{a.port}/  (model {motor.name}, {a.avatars} avatar(s); Ctrl+C stops)", flush=True)
+    server.run()
+    return 0
+
+
+def _serve_headless(a, world) -> int:
+    from .io.export import write_motion
+    from .serve import protocol as P
+
+    script = {"events": []}
+    if a.script:
+        try:
+            script = json.loads(Path(a.script).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"--script {a.script}: cannot read ({e})") from None
+        events = script.get("events") if isinstance(script, dict) else None
+        if not isinstance(events, list) or not all(isinstance(e, dict) and isinstance(e.get("frame"), int) and "cmd" in e for e in events):
+            raise ValueError(f"--script {a.script}: expected {{\"events\": [{{\"frame\": N, \"cmd\": {{...}}}}, ...]}} "
+                             "(what the studio's 'save events' writes)")
+        for e in events:
+            P.validate_command(e["cmd"])
+    frames = int(a.seconds * 30) if a.seconds else int(script.get("frames", 300))
+    world.run_offline(frames, script.get("events", []))
+    out = Path(a.export or "out/headless")
+    out.mkdir(parents=True, exist_ok=True)
+    for i in sorted(world.crowd.avatars):
+        X = world.recording(i)
+        for ext in ("bvh", "npz"):
+            write_motion(out / f"avatar{i}.{ext}", X, world.crowd.avatars[i].shape, meta={"seed": a.seed, "script": a.script})
+    print(f"{out}: {frames} frames for {len(world.crowd.avatars)} avatar(s), seed {a.seed}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avatar-motor", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -152,6 +301,34 @@ def build_parser() -> argparse.ArgumentParser:
     ls = d.add_parser("list", help="list the motion caches (and with --clips their clips)")
     ls.add_argument("--clips", action="store_true")
     ls.set_defaults(func=_data_list)
+
+    sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")
+    sv.add_argument("--model", default=str(DEFAULT_MODEL))
+    sv.add_argument("--avatars", type=int, default=1)
+    sv.add_argument("--host", default="127.0.0.1")
+    sv.add_argument("--port", type=int, default=8765)
+    sv.add_argument("--token", help="required when --host is not a loopback address")
+    sv.add_argument("--seed", type=int, default=0)
+    sv.add_argument("--steps", type=int, help="denoising steps per segment")
+    sv.add_argument("--threads", type=int, help="torch threads for generation")
+    sv.add_argument("--open-browser", action="store_true")
+    sv.add_argument("--headless", action="store_true", help="no server: replay --script on a virtual clock")
+    sv.add_argument("--script", help="events JSON (from the studio's 'save events' or /api/events)")
+    sv.add_argument("--seconds", type=float, help="headless length (default: the script's frames)")
+    sv.add_argument("--export", help="headless output folder (BVH + npz per avatar)")
+    sv.set_defaults(func=_serve)
+
+    g = sub.add_parser("generate", help="generate motion to a .bvh, .glb or .npz file")
+    g.add_argument("--model", default=str(DEFAULT_MODEL))
+    g.add_argument("--seconds", type=float, default=10.0)
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--init", help="FILE.bvh[:FRAME] or FILE.npz[:FRAME]: start from a frame of a motion file")
+    g.add_argument("--impulse", action="append", help="NAME@SECONDS, e.g. left_kick@2 (repeatable)")
+    g.add_argument("--goal", action="append", help="VX,VZ[@SECONDS] world m/s, or free[@SECONDS] (repeatable)")
+    g.add_argument("--steps", type=int, help="denoising steps per segment")
+    g.add_argument("--no-processing", action="store_true")
+    g.add_argument("--out", required=True)
+    g.set_defaults(func=_generate)
 
     ev = sub.add_parser("eval", help="measure a model").add_subparsers(dest="ecmd", required=True)
     er = ev.add_parser("realism", help="ASR, ANCR, naturalness, jitter, alive ratio and a 60-s stability check")

@@ -60,6 +60,7 @@ class AvatarState:
     v_goal: torch.Tensor | None = None  # (3,) world m/s
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
+    epoch: int = 0  # bumped by every interruption
 
 
 def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: float = 0.0) -> torch.Tensor:
@@ -117,8 +118,11 @@ class Crowd:
         return self.avatars[i]
 
     def interrupt(self, i: int) -> None:
-        """Drop the queued frames so the next segment starts from the frame shown now."""
-        self._get(i).queue.clear()
+        """Drop the queued frames so the next segment starts from the frame shown now; segments
+        being generated for the old queue are discarded (epoch)."""
+        a = self._get(i)
+        a.queue.clear()
+        a.epoch += 1
 
     # ------------------------------------------------------------ controls
     def set_goal(self, i: int, velocity=None, facing=None) -> None:
@@ -171,9 +175,7 @@ class Crowd:
     def next_frames(self) -> dict[int, torch.Tensor]:
         """Advance every avatar by one frame (generating a segment for those that need one) and
         return the frame each now shows."""
-        need = [a for a in self.avatars.values() if not a.queue]
-        if need:
-            self._generate(need)
+        self.refill(1)
         out = {}
         for a in self.avatars.values():
             a.state = a.queue.pop(0)
@@ -184,7 +186,7 @@ class Crowd:
         """Generate one whole segment for every avatar from its current state (offline use)."""
         for a in self.avatars.values():
             a.queue.clear()
-        self._generate(list(self.avatars.values()))
+        self.refill(1)
         out = {}
         for a in self.avatars.values():
             out[a.id] = torch.stack(a.queue)
@@ -192,19 +194,38 @@ class Crowd:
             a.queue.clear()
         return out
 
+    def refill(self, min_frames: int) -> int:
+        """Generate one segment (in one batch) for every avatar with fewer than `min_frames` queued
+        frames, continuing from the last queued frame. Returns how many avatars were served."""
+        job = self.prepare(min_frames)
+        if job is None:
+            return 0
+        self.commit(job, self.compute(job))
+        return len(job["avatars"])
+
+    def prepare(self, min_frames: int):
+        """Snapshot what to generate (call under the owner's lock in threaded use)."""
+        avs = [a for a in self.avatars.values() if len(a.queue) < min_frames]
+        if not avs:
+            return None
+        x0 = torch.stack([a.queue[-1] if a.queue else a.state for a in avs]).double()
+        for k, a in enumerate(avs):
+            if a.pending_velocity is not None and not a.queue:
+                x0[k, SLICES["velocities"]] += a.pending_velocity.double().flatten()
+                a.pending_velocity = None
+        return {"avatars": [a.id for a in avs], "epochs": [a.epoch for a in avs], "x0": x0,
+                "shapes": torch.stack([a.shape for a in avs]),
+                "v_goal": [a.v_goal for a in avs], "facing_goal": [a.facing_goal for a in avs]}
+
     @torch.no_grad()
-    def _generate(self, avs: list[AvatarState]) -> None:
+    def compute(self, job) -> torch.Tensor:
+        """Algorithm 1 for a prepared batch; touches no avatar (safe outside the lock)."""
         import time
 
         cfg, motor = self.cfg, self.motor
         t0 = time.perf_counter()
-        x0 = torch.stack([a.state for a in avs]).double()
-        for k, a in enumerate(avs):
-            if a.pending_velocity is not None:
-                x0[k, SLICES["velocities"]] += a.pending_velocity.double().flatten()
-                a.pending_velocity = None
-        shapes = torch.stack([a.shape for a in avs])
-        offsets = rest_offsets(shapes, torch.float64)
+        x0 = job["x0"]
+        offsets = rest_offsets(job["shapes"], torch.float64)
         # 1 canonicalize (+ re-projection)
         tf = canonical_transform(x0)
         Rt = tf.R.transpose(-1, -2)
@@ -212,17 +233,13 @@ class Crowd:
         if cfg.reproject:
             x0c = reproject(x0c, offsets)
         t1 = time.perf_counter()
-        # 2 condition, 3 diffusion
+        # 2 condition embedding, 3 reverse diffusion with guidance
         norm = motor.norm
-        x0n = norm.encode(x0c.float())
-        guide = self._guidance(avs, Rt.float())
-        cond_x0 = x0n
-
-        def denoise(x_t, t):
-            return motor.net(t, x_t, cond_x0)
-
-        B, N = len(avs), self.frames_per_segment
-        seg_n = motor.diffusion.sample(denoise, (B, N, STATE_DIM), cfg.steps, self.gen, guide, cfg.eta)
+        cond = norm.encode(x0c.float())
+        guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float())
+        B, N = len(x0), self.frames_per_segment
+        seg_n = motor.diffusion.sample(lambda x_t, t: motor.net(t, x_t, cond), (B, N, STATE_DIM), cfg.steps,
+                                       self.gen, guide, cfg.eta)
         t2 = time.perf_counter()
         seg = norm.decode(seg_n).double()
         if cfg.snap:
@@ -231,20 +248,26 @@ class Crowd:
             seg = inertialize(x0c, seg, cfg.inertia_halflife)
         # 4 back to world
         seg_w = apply_transform(seg, tf.R, tf.t).float()
-        for k, a in enumerate(avs):
-            a.queue = list(seg_w[k].unbind(0))
         t3 = time.perf_counter()
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": B}
+        return seg_w
 
-    def _guidance(self, avs: list[AvatarState], Rt: torch.Tensor):
+    def commit(self, job, seg_w: torch.Tensor) -> None:
+        """Append generated frames, unless a command interrupted the avatar meanwhile."""
+        for k, (i, epoch) in enumerate(zip(job["avatars"], job["epochs"])):
+            a = self.avatars.get(i)
+            if a is not None and a.epoch == epoch:
+                a.queue.extend(seg_w[k].unbind(0))
+
+    def _guidance(self, v_goals: list, f_goals: list, Rt: torch.Tensor):
         cfg = self.cfg
-        has_v = [a.v_goal is not None for a in avs]
-        has_f = [a.facing_goal is not None for a in avs]
+        has_v = [v is not None for v in v_goals]
+        has_f = [f is not None for f in f_goals]
         if not any(has_v) and not any(has_f):
             return None
         z = torch.zeros(3)
-        v_goal = torch.stack([Rt[k] @ (a.v_goal if a.v_goal is not None else z) for k, a in enumerate(avs)])
-        f_goal = torch.stack([Rt[k] @ (a.facing_goal if a.facing_goal is not None else z) for k, a in enumerate(avs)])
+        v_goal = torch.stack([Rt[k] @ (v if v is not None else z) for k, v in enumerate(v_goals)])
+        f_goal = torch.stack([Rt[k] @ (f if f is not None else z) for k, f in enumerate(f_goals)])
         wv = torch.tensor(has_v, dtype=torch.float32)[:, None, None] * cfg.move_weight
         wf = torch.tensor(has_f, dtype=torch.float32)[:, None, None] * cfg.facing_weight
         norm = self.motor.norm

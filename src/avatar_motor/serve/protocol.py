@@ -1,0 +1,155 @@
+"""The streaming protocol, version 1 (documented in docs/protocol.md): command validation and
+frame encoding. Commands are JSON text messages; frames are binary (default) or JSON."""
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import numpy as np
+
+from ..body.skeleton import JOINT_NAMES, SHAPE_DIM
+
+VERSION = 1
+MAX_MESSAGE_BYTES = 16 * 1024
+FRAME_MAGIC = b"AMF1"
+FRAME_HEADER = struct.Struct("<4sIHH")  # magic, frame index, avatar count, joint count
+AVATAR_RECORD = 4 + 22 * 3 * 4 + 22 * 4 * 4  # uint32 id, float32 positions, float32 quaternions
+
+
+class ProtocolError(ValueError):
+    """A malformed message: the reply names the field and what is expected."""
+
+
+def _num(v, what: str, lo: float = -1e4, hi: float = 1e4) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+        raise ProtocolError(f"{what} must be a finite number in [{lo:g}, {hi:g}], got {v!r}")
+    return float(v)
+
+
+def _vec(v, n: int, what: str, lo: float = -1e4, hi: float = 1e4) -> list[float]:
+    if not isinstance(v, list) or len(v) != n:
+        raise ProtocolError(f"{what} must be a list of {n} numbers, got {v!r}"[:200])
+    return [_num(x, what, lo, hi) for x in v]
+
+
+def _int(v, what: str, lo: int = 0, hi: int = 2**31 - 1) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ProtocolError(f"{what} must be an integer in [{lo}, {hi}], got {v!r}"[:200])
+    return v
+
+
+# per command: required and optional fields with their validators
+_FIELDS = {
+    "hello": ({}, {"version": lambda v: _int(v, "version"), "format": lambda v: _choice(v, ("binary", "json"), "format"),
+                   "token": lambda v: _str(v, "token")}),
+    "spawn": ({}, {"position": lambda v: _vec(v, 2, "position"), "yaw": lambda v: _num(v, "yaw", -100, 100),
+                   "shape": lambda v: _vec(v, SHAPE_DIM, "shape", -3, 3)}),
+    "remove": ({"avatar": lambda v: _int(v, "avatar")}, {}),
+    "impulse": ({"avatar": lambda v: _int(v, "avatar"), "preset": lambda v: _str(v, "preset")},
+                {"scale": lambda v: _num(v, "scale", 0, 5)}),
+    "push": ({"avatar": lambda v: _int(v, "avatar"), "joint": lambda v: _joint(v),
+              "velocity": lambda v: _vec(v, 3, "velocity (m/s)", -30, 30)},
+             {"frame": lambda v: _choice(v, ("world", "body"), "frame")}),
+    "goal": ({"avatar": lambda v: _int(v, "avatar")},
+             {"velocity": lambda v: None if v is None else _vec(v, 2, "velocity (vx, vz m/s)", -8, 8),
+              "facing": lambda v: None if v is None else _vec(v, 2, "facing (fx, fz)")}),
+    "target": ({"avatar": lambda v: _int(v, "avatar")},
+               {"position": lambda v: None if v is None else _vec(v, 2, "position (x, z m)", -1000, 1000),
+                "speed": lambda v: _num(v, "speed", 0.1, 6)}),
+    "label": ({"avatar": lambda v: _int(v, "avatar"), "label": lambda v: _str(v, "label")},
+              {"scale": lambda v: _num(v, "scale", 0, 10)}),
+    "reset": ({}, {"avatar": lambda v: _int(v, "avatar")}),
+    "seed": ({"seed": lambda v: _int(v, "seed")}, {}),
+}
+COMMANDS = sorted(_FIELDS)
+
+
+def _str(v, what: str) -> str:
+    if not isinstance(v, str) or not 0 < len(v) <= 200:
+        raise ProtocolError(f"{what} must be a non-empty string")
+    return v
+
+
+def _choice(v, options, what: str):
+    if v not in options:
+        raise ProtocolError(f"{what} must be one of {list(options)}, got {v!r}"[:200])
+    return v
+
+
+def _joint(v):
+    if isinstance(v, str):
+        if v not in JOINT_NAMES:
+            raise ProtocolError(f"joint must be a joint name {JOINT_NAMES} or index 0..21, got {v!r}"[:300])
+        return v
+    return _int(v, "joint", 0, 21)
+
+
+def parse_message(text: str | bytes) -> dict:
+    """Text of one client message -> validated command dict (keeps an optional 'id')."""
+    if isinstance(text, bytes):
+        raise ProtocolError("commands are JSON text messages, not binary")
+    if len(text) > MAX_MESSAGE_BYTES:
+        raise ProtocolError(f"message of {len(text)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    try:
+        msg = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise ProtocolError(f"not valid JSON: {str(e)[:100]}") from None
+    return validate_command(msg)
+
+
+def validate_command(msg) -> dict:
+    if not isinstance(msg, dict):
+        raise ProtocolError("a command must be a JSON object with a 'type'")
+    kind = msg.get("type")
+    if kind not in _FIELDS:
+        raise ProtocolError(f"unknown command type {kind!r}; commands are {COMMANDS}"[:300])
+    required, optional = _FIELDS[kind]
+    out = {"type": kind}
+    if "id" in msg:
+        if not isinstance(msg["id"], (int, str)) or isinstance(msg["id"], bool) or len(str(msg["id"])) > 64:
+            raise ProtocolError("id must be an integer or a short string")
+        out["id"] = msg["id"]
+    for k, check in required.items():
+        if k not in msg:
+            raise ProtocolError(f"{kind}: missing field {k!r}")
+        out[k] = check(msg[k])
+    for k, check in optional.items():
+        if k in msg:
+            out[k] = check(msg[k])
+    unknown = set(msg) - set(required) - set(optional) - {"type", "id"}
+    if unknown:
+        raise ProtocolError(f"{kind}: unknown fields {sorted(unknown)[:5]}")
+    return out
+
+
+def encode_frame_binary(frame: int, ids: list[int], joints: np.ndarray, quats: np.ndarray) -> bytes:
+    """Little-endian: header (magic 'AMF1', uint32 frame, uint16 avatars, uint16 joints=22) then
+    per avatar uint32 id, 66 float32 positions, 88 float32 quaternions (x, y, z, w)."""
+    parts = [FRAME_HEADER.pack(FRAME_MAGIC, frame & 0xFFFFFFFF, len(ids), 22)]
+    J = np.ascontiguousarray(joints, dtype="<f4").reshape(len(ids), 66)
+    Q = np.ascontiguousarray(quats, dtype="<f4").reshape(len(ids), 88)
+    for k, i in enumerate(ids):
+        parts += [struct.pack("<I", i), J[k].tobytes(), Q[k].tobytes()]
+    return b"".join(parts)
+
+
+def decode_frame_binary(data: bytes) -> dict:
+    magic, frame, n, nj = FRAME_HEADER.unpack_from(data, 0)
+    if magic != FRAME_MAGIC or nj != 22 or len(data) != FRAME_HEADER.size + n * AVATAR_RECORD:
+        raise ProtocolError("not an AMF1 frame")
+    out = {"frame": frame, "avatars": {}}
+    off = FRAME_HEADER.size
+    for _ in range(n):
+        (i,) = struct.unpack_from("<I", data, off)
+        J = np.frombuffer(data, "<f4", 66, off + 4).reshape(22, 3)
+        Q = np.frombuffer(data, "<f4", 88, off + 4 + 264).reshape(22, 4)
+        out["avatars"][i] = {"positions": J, "rotations": Q}
+        off += AVATAR_RECORD
+    return out
+
+
+def encode_frame_json(frame: int, ids: list[int], joints: np.ndarray, quats: np.ndarray) -> str:
+    return json.dumps({"type": "frame", "frame": frame, "avatars": [
+        {"id": i, "positions": np.round(joints[k], 4).tolist(), "rotations": np.round(quats[k], 5).tolist()}
+        for k, i in enumerate(ids)]})

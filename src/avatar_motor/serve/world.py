@@ -1,0 +1,224 @@
+"""The served world: a Crowd, the commands of the protocol, a 30-fps clock, recording and the
+event log. No sockets here: the server and the headless replay both drive a World.
+
+Threading: the server's event loop calls `apply` and `tick`; a worker thread calls `generate`.
+Both hold `lock` while they touch the crowd; the diffusion itself runs outside the lock.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import JOINT_NAMES
+from ..data.motion_state import FPS, unpack
+from ..model.checkpoint import Motor
+from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig, standing_state
+from . import protocol as P
+
+MAX_AVATARS = 64
+LOOKAHEAD = 8  # frames kept queued ahead of playback
+
+
+class CommandError(ValueError):
+    """A well-formed message whose request cannot be carried out."""
+
+
+@dataclass
+class Target:
+    position: torch.Tensor  # (2,) world x, z
+    speed: float
+
+
+@dataclass
+class World:
+    motor: Motor
+    config: RuntimeConfig = field(default_factory=RuntimeConfig)
+    seed: int = 0
+    record_seconds: float = 60.0
+
+    def __post_init__(self):
+        self.lock = threading.RLock()
+        self.crowd = Crowd(self.motor, self.config, self.seed)
+        self.frame = 0
+        self.targets: dict[int, Target] = {}
+        self.history: dict[int, deque] = {}
+        self.events: list[dict] = []  # the commands applied, with their frame: a replayable script
+        self.last_gen_ms = 0.0
+        self.stalls = 0  # ticks at which some avatar had no frame ready
+
+    # ------------------------------------------------------------ commands
+    def apply(self, cmd: dict, log: bool = True) -> dict:
+        """Carry out one validated command; returns the ack payload. Raises CommandError."""
+        kind = cmd["type"]
+        with self.lock:
+            res = getattr(self, f"_cmd_{kind}")(cmd)
+            if log:
+                self.events.append({"frame": self.frame, "t": self.frame / FPS, "cmd": cmd})
+        return res or {}
+
+    def _avatar(self, cmd) -> int:
+        i = cmd.get("avatar", 0)
+        if i not in self.crowd.avatars:
+            raise CommandError(f"no avatar {i}; avatars are {sorted(self.crowd.avatars)}")
+        return i
+
+    def _cmd_spawn(self, cmd):
+        if len(self.crowd.avatars) >= MAX_AVATARS:
+            raise CommandError(f"at most {MAX_AVATARS} avatars")
+        pos = cmd.get("position", [1.0 * len(self.crowd.avatars), 0.0])
+        shape = cmd.get("shape")
+        i = self.crowd.spawn(shape=torch.tensor(shape, dtype=torch.float32) if shape is not None else None,
+                             position=(float(pos[0]), float(pos[1])), yaw=float(cmd.get("yaw", 0.0)))
+        self.history[i] = deque(maxlen=int(self.record_seconds * FPS))
+        return {"avatar": i}
+
+    def _cmd_remove(self, cmd):
+        i = self._avatar(cmd)
+        self.crowd.remove(i)
+        self.targets.pop(i, None)
+        self.history.pop(i, None)
+
+    def _cmd_impulse(self, cmd):
+        i = self._avatar(cmd)
+        if cmd["preset"] not in IMPULSE_PRESETS:
+            raise CommandError(f"unknown preset {cmd['preset']!r}; presets are {sorted(IMPULSE_PRESETS)}")
+        self.crowd.impulse(i, cmd["preset"], float(cmd.get("scale", 1.0)))
+
+    def _cmd_push(self, cmd):
+        i = self._avatar(cmd)
+        j = cmd["joint"]
+        if isinstance(j, str) and j not in JOINT_NAMES:
+            raise CommandError(f"unknown joint {j!r}; joints are {JOINT_NAMES}")
+        self.crowd.push(i, j, cmd["velocity"], cmd.get("frame", "world"))
+
+    def _cmd_goal(self, cmd):
+        i = self._avatar(cmd)
+        self.targets.pop(i, None)
+        self.crowd.set_goal(i, cmd.get("velocity"), cmd.get("facing"))
+
+    def _cmd_target(self, cmd):
+        i = self._avatar(cmd)
+        pos = cmd.get("position")
+        if pos is None:
+            self.targets.pop(i, None)
+            self.crowd.set_goal(i, None)
+            return
+        self.targets[i] = Target(torch.tensor(pos, dtype=torch.float32), float(cmd.get("speed", 1.2)))
+        self._steer_to_target(i)
+
+    def _cmd_label(self, cmd):
+        raise CommandError("this model has no action adaptor; labels need an adapted model (not yet available)")
+
+    def _cmd_reset(self, cmd):
+        """Stand the avatar(s) up where they are, controls released."""
+        ids = [self._avatar(cmd)] if "avatar" in cmd else list(self.crowd.avatars)
+        for i in ids:
+            a = self.crowd.avatars[i]
+            a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
+            a.v_goal = a.facing_goal = a.pending_velocity = None
+            self.crowd.interrupt(i)
+            self.targets.pop(i, None)
+
+    def _cmd_seed(self, cmd):
+        self.crowd.gen.manual_seed(int(cmd["seed"]))
+
+    # ------------------------------------------------------------ clock
+    def _steer_to_target(self, i: int) -> None:
+        """The magnet: a goal velocity towards the target, slowing within a metre of it."""
+        tg = self.targets[i]
+        a = self.crowd.avatars[i]
+        d = tg.position - a.state[[0, 2]]
+        dist = float(d.norm())
+        if dist < 0.25:
+            if a.v_goal is not None:
+                self.crowd.set_goal(i, None)
+            return
+        v = d / dist * tg.speed * min(1.0, dist)
+        cur = a.v_goal
+        # re-aim only when the heading changed noticeably: every re-aim restarts the segment
+        if cur is None or float((cur[[0, 2]] - v).norm()) > 0.25:
+            self.crowd.set_goal(i, v.tolist())
+
+    def needs_generation(self) -> bool:
+        with self.lock:
+            return any(len(a.queue) < LOOKAHEAD for a in self.crowd.avatars.values())
+
+    def generate(self) -> None:
+        """One batched segment for the avatars running low (worker thread)."""
+        with self.lock:
+            job = self.crowd.prepare(LOOKAHEAD)
+        if job is None:
+            return
+        t = time.perf_counter()
+        seg = self.crowd.compute(job)
+        self.last_gen_ms = (time.perf_counter() - t) * 1000
+        with self.lock:
+            self.crowd.commit(job, seg)
+
+    def tick(self) -> dict[int, torch.Tensor]:
+        """Advance the clock one frame: every avatar with a frame ready shows it (the others hold
+        their pose and count a stall). Returns the shown states."""
+        with self.lock:
+            self.frame += 1
+            out = {}
+            stalled = False
+            for i, a in self.crowd.avatars.items():
+                if a.queue:
+                    a.state = a.queue.pop(0)
+                else:
+                    stalled = True
+                out[i] = a.state
+                self.history[i].append(a.state)
+            if stalled:
+                self.stalls += 1
+            if self.frame % 5 == 0:
+                for i in list(self.targets):
+                    self._steer_to_target(i)
+            return out
+
+    def run_offline(self, frames: int, script: list[dict] | None = None) -> None:
+        """Deterministic replay on a virtual clock: commands at their frames, generation inline."""
+        script = sorted(script or [], key=lambda e: e["frame"])
+        k = 0
+        for _ in range(frames):
+            while k < len(script) and script[k]["frame"] <= self.frame:
+                self.apply(P.validate_command(script[k]["cmd"]))
+                k += 1
+            while self.needs_generation():
+                self.generate()
+            self.tick()
+
+    # ------------------------------------------------------------ output
+    def frame_payload(self, states: dict[int, torch.Tensor]) -> tuple[list[int], torch.Tensor, torch.Tensor]:
+        """ids, joint positions (A, 22, 3) world metres, local rotation quaternions (A, 22, 4) x,y,z,w
+        (joint 0: the pelvis's world rotation)."""
+        ids = sorted(states)
+        if not ids:
+            return [], torch.zeros(0, 22, 3), torch.zeros(0, 22, 4)
+        X = torch.stack([states[i] for i in ids])
+        u = unpack(X)
+        R = torch.cat((u.root_rot[:, None], u.local_rot), 1)
+        q = rot.matrix_to_quat(R)  # w, x, y, z
+        return ids, u.joints, torch.cat((q[..., 1:], q[..., :1]), -1)
+
+    def recording(self, i: int, seconds: float | None = None) -> torch.Tensor:
+        with self.lock:
+            if i not in self.history:
+                raise CommandError(f"no avatar {i}")
+            h = list(self.history[i])
+        if seconds is not None:
+            h = h[-max(1, int(seconds * FPS)):]
+        if not h:
+            raise CommandError(f"avatar {i} has no recorded frames yet")
+        return torch.stack(h)
+
+    def stats(self) -> dict:
+        return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd.avatars),
+                "gen_ms": round(self.last_gen_ms, 1), "stalls": self.stalls, "model": self.motor.name,
+                "steps": self.config.steps}
+
