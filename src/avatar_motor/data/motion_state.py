@@ -85,7 +85,12 @@ def finite_velocities(joints: torch.Tensor, fps: float = FPS, first: torch.Tenso
     `first` is the velocity for frame 0 (e.g. the state's own velocity); by default frame 0 repeats
     frame 1's velocity."""
     v = (joints[..., 1:, :, :] - joints[..., :-1, :, :]) * fps
-    v0 = v[..., :1, :, :] if first is None else first[..., None, :, :]
+    if first is not None:
+        v0 = first[..., None, :, :]
+    elif joints.shape[-3] > 1:
+        v0 = v[..., :1, :, :]
+    else:  # a single frame: nothing to difference
+        v0 = torch.zeros_like(joints)
     return torch.cat((v0, v), -3)
 
 

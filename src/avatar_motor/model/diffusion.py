@@ -43,6 +43,16 @@ class Schedule:
                         betas * prev.sqrt() / (1 - abar), (1 - prev) * (1 - betas).sqrt() / (1 - abar))
 
 
+def randn(shape, generator: torch.Generator | list | None) -> torch.Tensor:
+    """Gaussian noise; with a list of generators, row b of the batch comes from generator b, so a
+    batch reproduces exactly what each row would get alone (crowd == individual avatars)."""
+    if isinstance(generator, (list, tuple)):
+        if len(generator) != shape[0]:
+            raise ValueError(f"{len(generator)} generators for a batch of {shape[0]}")
+        return torch.stack([torch.randn(shape[1:], generator=g) for g in generator])
+    return torch.randn(shape, generator=generator)
+
+
 class Diffusion:
     def __init__(self, steps: int = 50):
         self.T = steps
@@ -67,7 +77,7 @@ class Diffusion:
         mean = s.posterior_mean_coef1[k].item() * x0_hat + s.posterior_mean_coef2[k].item() * x_t
         return mean, s.posterior_variance[k].item()
 
-    def sample(self, denoise, shape, steps: int = 50, generator: torch.Generator | None = None,
+    def sample(self, denoise, shape, steps: int = 50, generator: torch.Generator | list | None = None,
                guide=None, eta: float = 1.0, noise: torch.Tensor | None = None) -> torch.Tensor:
         """Reverse diffusion. denoise(x_t, t_long) -> x0_hat.
 
@@ -76,7 +86,7 @@ class Diffusion:
         mean by -variance * gradient; the last step (variance 0) is left to the model, so the
         output is always the network's own, self-consistent estimate."""
         s = self.respaced(steps)
-        x = torch.randn(shape, generator=generator) if noise is None else noise
+        x = randn(shape, generator) if noise is None else noise
         for k in range(len(s.timesteps) - 1, -1, -1):
             t = torch.full((shape[0],), int(s.timesteps[k]), dtype=torch.long)
             x0 = denoise(x, t)
@@ -88,7 +98,7 @@ class Diffusion:
                 mean, var = self.posterior(s, k, x0, x)
                 if grad is not None:
                     mean = mean - var * grad
-                x = mean + math.sqrt(var) * torch.randn(shape, generator=generator)
+                x = mean + math.sqrt(var) * randn(shape, generator)
             else:  # DDIM
                 ab, ab_prev = s.alphas_cumprod[k].item(), s.alphas_cumprod_prev[k].item()
                 if grad is not None:
@@ -97,5 +107,5 @@ class Diffusion:
                 sigma = eta * math.sqrt((1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev))
                 x = math.sqrt(ab_prev) * x0 + math.sqrt(max(1 - ab_prev - sigma**2, 0.0)) * eps
                 if sigma > 0:
-                    x = x + sigma * torch.randn(shape, generator=generator)
+                    x = x + sigma * randn(shape, generator)
         return x

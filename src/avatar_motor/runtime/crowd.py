@@ -61,6 +61,7 @@ class AvatarState:
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
     epoch: int = 0  # bumped by every interruption
+    gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
 
 
 def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: float = 0.0) -> torch.Tensor:
@@ -90,7 +91,7 @@ class Crowd:
     def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0):
         self.motor = motor
         self.cfg = config or RuntimeConfig()
-        self.gen = torch.Generator().manual_seed(seed)
+        self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
         self._next_id = 0
         self.frames_per_segment = motor.net.cfg.frames
@@ -105,7 +106,7 @@ class Crowd:
         state = validate_vector(state, STATE_DIM, "initial state")
         i = self._next_id
         self._next_id += 1
-        self.avatars[i] = AvatarState(i, state, shape)
+        self.avatars[i] = AvatarState(i, state, shape, gen=torch.Generator().manual_seed(self.seed * 100003 + i))
         return i
 
     def remove(self, i: int) -> None:
@@ -214,7 +215,7 @@ class Crowd:
                 x0[k, SLICES["velocities"]] += a.pending_velocity.double().flatten()
                 a.pending_velocity = None
         return {"avatars": [a.id for a in avs], "epochs": [a.epoch for a in avs], "x0": x0,
-                "shapes": torch.stack([a.shape for a in avs]),
+                "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
                 "v_goal": [a.v_goal for a in avs], "facing_goal": [a.facing_goal for a in avs]}
 
     @torch.no_grad()
@@ -239,7 +240,7 @@ class Crowd:
         guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float())
         B, N = len(x0), self.frames_per_segment
         seg_n = motor.diffusion.sample(lambda x_t, t: motor.net(t, x_t, cond), (B, N, STATE_DIM), cfg.steps,
-                                       self.gen, guide, cfg.eta)
+                                       job["gens"], guide, cfg.eta)
         t2 = time.perf_counter()
         seg = norm.decode(seg_n).double()
         if cfg.snap:

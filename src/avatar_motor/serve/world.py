@@ -125,7 +125,10 @@ class World:
             self.targets.pop(i, None)
 
     def _cmd_seed(self, cmd):
-        self.crowd.gen.manual_seed(int(cmd["seed"]))
+        """Reseed every avatar's noise (and those spawned later) for a reproducible continuation."""
+        self.crowd.seed = int(cmd["seed"])
+        for i, a in self.crowd.avatars.items():
+            a.gen.manual_seed(self.crowd.seed * 100003 + i)
 
     # ------------------------------------------------------------ clock
     def _steer_to_target(self, i: int) -> None:

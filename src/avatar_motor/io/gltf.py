@@ -1,0 +1,151 @@
+"""glTF 2.0 binary (.glb) export: the canonical skeleton as a node hierarchy with a capsule-ish
+mannequin of our own (a cylinder per bone, a sphere per joint) and one animation clip (root
+translation + every joint's local rotation). Opens in any glTF viewer; Y up, metres, like our world.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..body import rotations as rot
+from ..body.skeleton import JOINT_NAMES, PARENTS, rest_offsets
+from ..data.motion_state import unpack
+
+_FLOAT, _UINT16 = 5126, 5123
+_ARRAY, _ELEMENTS = 34962, 34963
+
+
+def _cylinder(n: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit-radius cylinder of height 1 along +Y from y=0 to y=1."""
+    a = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    ring = np.stack((np.cos(a), np.zeros(n), np.sin(a)), 1)
+    pos = np.concatenate((ring, ring + [0, 1, 0])).astype(np.float32)
+    nrm = np.concatenate((ring, ring)).astype(np.float32)
+    idx = []
+    for i in range(n):
+        j = (i + 1) % n
+        idx += [i, i + n, j, j, i + n, j + n]
+    return pos, nrm, np.array(idx, np.uint16)
+
+
+def _sphere(n: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    pos = []
+    for i in range(n + 1):
+        th = math.pi * i / n
+        for k in range(2 * n):
+            ph = 2 * math.pi * k / (2 * n)
+            pos.append((math.sin(th) * math.cos(ph), math.cos(th), math.sin(th) * math.sin(ph)))
+    pos = np.array(pos, np.float32)
+    idx = []
+    m = 2 * n
+    for i in range(n):
+        for k in range(m):
+            a, b = i * m + k, i * m + (k + 1) % m
+            c, d = a + m, b + m
+            idx += [a, c, b, b, c, d]
+    return pos, pos.copy(), np.array(idx, np.uint16)
+
+
+class _Builder:
+    def __init__(self):
+        self.bin = bytearray()
+        self.views, self.accessors = [], []
+
+    def add(self, arr: np.ndarray, comp: int, typ: str, target: int | None = None, minmax: bool = False) -> int:
+        while len(self.bin) % 4:
+            self.bin.append(0)
+        data = np.ascontiguousarray(arr).tobytes()
+        view = {"buffer": 0, "byteOffset": len(self.bin), "byteLength": len(data)}
+        if target:
+            view["target"] = target
+        self.bin += data
+        self.views.append(view)
+        acc = {"bufferView": len(self.views) - 1, "componentType": comp, "count": int(arr.shape[0]), "type": typ}
+        if minmax:
+            acc["min"] = arr.min(0).astype(float).tolist() if arr.ndim > 1 else [float(arr.min())]
+            acc["max"] = arr.max(0).astype(float).tolist() if arr.ndim > 1 else [float(arr.max())]
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+
+def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = 30.0) -> None:
+    u = unpack(states.double())
+    T = states.shape[0]
+    off = rest_offsets(shape, torch.float64).numpy()
+    local = torch.cat((u.root_rot[:, None], u.local_rot), 1)
+    q = rot.matrix_to_quat(local).numpy()  # (T, 22, w x y z)
+    q_xyzw = np.concatenate((q[..., 1:], q[..., :1]), -1).astype(np.float32)
+    B = _Builder()
+    meshes, materials = [], [{"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.45, 0.62, 0.85, 1.0],
+                                                                      "metallicFactor": 0.0, "roughnessFactor": 0.6}}]
+    for name, (p, n, i) in (("bone", _cylinder()), ("joint", _sphere())):
+        prim = {"attributes": {"POSITION": B.add(p, _FLOAT, "VEC3", _ARRAY, True), "NORMAL": B.add(n, _FLOAT, "VEC3", _ARRAY)},
+                "indices": B.add(i, _UINT16, "SCALAR", _ELEMENTS), "material": 0}
+        meshes.append({"name": name, "primitives": [prim]})
+    nodes = []
+    for j, name in enumerate(JOINT_NAMES):
+        node = {"name": name, "translation": (u.root_pos[0].tolist() if j == 0 else off[j].tolist()),
+                "rotation": q_xyzw[0, j].tolist(), "children": []}
+        nodes.append(node)
+    for j in range(1, len(JOINT_NAMES)):
+        nodes[PARENTS[j]]["children"].append(j)
+    radius = [0.09, 0.075, 0.075, 0.08, 0.06, 0.06, 0.08, 0.045, 0.045, 0.09, 0.035, 0.035, 0.05, 0.05, 0.05, 0.1,
+              0.05, 0.05, 0.04, 0.04, 0.035, 0.035]
+    for j in range(len(JOINT_NAMES)):
+        r = radius[j] * 1.1
+        nodes.append({"name": f"{JOINT_NAMES[j]}_ball", "mesh": 1, "scale": [r, r, r]})
+        nodes[j]["children"].append(len(nodes) - 1)
+        if j == 0:
+            continue
+        p = PARENTS[j]
+        d = off[j]
+        length = float(np.linalg.norm(d))
+        if length < 1e-6:
+            continue
+        qa = rot.matrix_to_quat(rot.rotation_between(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+                                                     torch.from_numpy(d))).numpy()
+        rr = min(radius[j], radius[p]) * 0.9
+        nodes.append({"name": f"{JOINT_NAMES[p]}_to_{JOINT_NAMES[j]}", "mesh": 0, "scale": [rr, length, rr],
+                      "rotation": [float(qa[1]), float(qa[2]), float(qa[3]), float(qa[0])]})
+        nodes[p]["children"].append(len(nodes) - 1)
+    for nd in nodes:
+        if "children" in nd and not nd["children"]:
+            del nd["children"]
+    times = (np.arange(T) / fps).astype(np.float32)
+    t_acc = B.add(times, _FLOAT, "SCALAR", minmax=True)
+    samplers, channels = [], []
+    samplers.append({"input": t_acc, "output": B.add(u.root_pos.numpy().astype(np.float32), _FLOAT, "VEC3"), "interpolation": "LINEAR"})
+    channels.append({"sampler": 0, "target": {"node": 0, "path": "translation"}})
+    for j in range(len(JOINT_NAMES)):
+        samplers.append({"input": t_acc, "output": B.add(q_xyzw[:, j], _FLOAT, "VEC4"), "interpolation": "LINEAR"})
+        channels.append({"sampler": len(samplers) - 1, "target": {"node": j, "path": "rotation"}})
+    doc = {
+        "asset": {"version": "2.0", "generator": "avatar-motor"},
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": nodes, "meshes": meshes, "materials": materials,
+        "animations": [{"name": "motion", "samplers": samplers, "channels": channels}],
+        "buffers": [{"byteLength": len(B.bin)}], "bufferViews": B.views, "accessors": B.accessors,
+    }
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    bn = bytes(B.bin) + b"\0" * (-len(B.bin) % 4)
+    total = 12 + 8 + len(js) + 8 + len(bn)
+    with open(path, "wb") as f:
+        f.write(struct.pack("<4sII", b"glTF", 2, total))
+        f.write(struct.pack("<I4s", len(js), b"JSON") + js)
+        f.write(struct.pack("<I4s", len(bn), b"BIN\0") + bn)
+
+
+def read_glb(path: str | Path) -> tuple[dict, bytes]:
+    data = Path(path).read_bytes()
+    magic, version, total = struct.unpack_from("<4sII", data, 0)
+    if magic != b"glTF" or version != 2 or total != len(data):
+        raise ValueError(f"{path}: not a glTF 2.0 binary file")
+    jl, jt = struct.unpack_from("<I4s", data, 12)
+    doc = json.loads(data[20:20 + jl])
+    bl, bt = struct.unpack_from("<I4s", data, 20 + jl)
+    return doc, data[28 + jl:28 + jl + bl]

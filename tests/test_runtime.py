@@ -1,0 +1,169 @@
+import math
+
+import pytest
+import torch
+
+from avatar_motor.body.skeleton import FOOT_CLEARANCE, SHAPE_DIM, forward_kinematics, rest_offsets
+from avatar_motor.data.motion_state import FPS, joints_of, unpack, velocities_of
+from avatar_motor.runtime.crowd import IMPULSE_PRESETS, Avatar, Crowd, RuntimeConfig, standing_state
+from avatar_motor.runtime.guidance import facing_loss_and_grad, move_loss_and_grad
+from avatar_motor.runtime.processing import inertialize, reproject, snap_to_ground
+
+from .conftest_models import tiny_motor
+from .test_motion_state import random_states
+
+
+@pytest.fixture
+def motor(tmp_path):
+    return tiny_motor(tmp_path)
+
+
+def test_standing_state_is_on_the_ground_and_consistent():
+    x = standing_state()
+    J = joints_of(x)
+    assert abs(float(J[:, 1].min()) - FOOT_CLEARANCE) < 1e-6
+    assert torch.allclose(reproject(x[None].double(), rest_offsets(None, torch.float64))[0].float(), x, atol=1e-6)
+    assert float(J[20, 1]) < 1.1  # arms lowered, not a T-pose
+
+
+def test_snap_puts_lowest_joint_of_segment_on_ground():
+    seg = random_states(B=3, T=15).float()
+    out = snap_to_ground(seg)
+    low = joints_of(out)[..., 1].amin((-1, -2))
+    assert torch.allclose(low, torch.full((3,), FOOT_CLEARANCE), atol=1e-6)
+    assert torch.allclose(out[..., 1] - seg[..., 1], joints_of(out)[..., 0, 1] - joints_of(seg)[..., 0, 1])  # rigid shift
+
+
+def walk_states(T=16):
+    from avatar_motor.body.skeleton import PARENTS
+    from avatar_motor.data.motion_state import states_from_motion
+    from .fixture_tools import procedural_walk
+    root, G = procedural_walk(T + 8)
+    local = torch.stack([G[:, PARENTS[k]].transpose(-1, -2) @ G[:, k] for k in range(1, 22)], 1)
+    x = states_from_motion(root, G[:, 0], local, rest_offsets(None, torch.float64))
+    return torch.stack((x[:T], x[8:8 + T]))
+
+
+def test_inertialization_is_continuous_then_decays():
+    x = walk_states()
+    x0, seg = x[:, 0], x[:, 1:].clone()
+    seg[..., 135:201] += 0.3  # a jump at the segment start
+    out = inertialize(x0, seg, halflife=0.1)
+    J0, V0 = joints_of(x0), velocities_of(x0)
+    assert torch.allclose(joints_of(out)[:, 0], J0 + V0 / FPS, atol=1e-6)  # where x0 was heading
+    late = (joints_of(out)[:, -1] - joints_of(seg)[:, -1]).abs().max()
+    assert late < 0.02 * 0.3 * 3  # offset almost gone after 0.5 s
+    assert torch.allclose(velocities_of(out)[:, 1:], (joints_of(out)[:, 1:] - joints_of(out)[:, :-1]) * FPS, atol=1e-6)
+    # rotations blend too: frame 1 keeps the initial state's rotations
+    u0, u = unpack(x0), unpack(out)
+    assert torch.allclose(u.root_rot[:, 0], u0.root_rot, atol=1e-6)
+
+
+def test_reprojection_replaces_joints_by_fk():
+    x = random_states(B=2, T=1)[:, 0]
+    x[..., 135:201] += 0.1
+    off = rest_offsets(None, torch.float64)
+    out = reproject(x, off)
+    u = unpack(out)
+    J, _ = forward_kinematics(u.root_pos, u.root_rot, u.local_rot, off)
+    assert torch.allclose(u.joints, J)
+    assert torch.equal(velocities_of(out), velocities_of(x))
+
+
+def test_determinism_per_seed(motor):
+    a = Avatar(motor, seed=5).rollout(32)
+    b = Avatar(motor, seed=5).rollout(32)
+    c = Avatar(motor, seed=6).rollout(32)
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_crowd_equals_individual_avatars(motor):
+    shapes = torch.randn(3, SHAPE_DIM, generator=torch.Generator().manual_seed(0))
+    crowd = Crowd(motor, seed=2)
+    ids = [crowd.spawn(shape=shapes[k], position=(k, 0.0)) for k in range(3)]
+    crowd.set_goal(ids[1], (1.0, 0.0))
+    together = [crowd.step_segment() for _ in range(2)]
+    for k in range(3):
+        solo = Crowd(motor, seed=2)
+        solo._next_id = k  # same id -> same noise stream
+        i = solo.spawn(shape=shapes[k], position=(k, 0.0))
+        if k == 1:
+            solo.set_goal(i, (1.0, 0.0))
+        alone = [solo.step_segment()[i] for _ in range(2)]
+        for t in range(2):
+            assert torch.allclose(together[t][ids[k]], alone[t], atol=1e-4)
+
+
+def test_command_takes_effect_at_the_next_frame(motor):
+    crowd = Crowd(motor, seed=0)
+    i = crowd.spawn()
+    crowd.next_frames()
+    assert len(crowd.avatars[i].queue) == 14
+    shown = crowd.avatars[i].state
+    crowd.push(i, "head", (0.0, 0.0, 3.0))
+    assert crowd.avatars[i].queue == []
+    nxt = crowd.next_frames()[i]
+    # the new segment starts from the shown frame, with the push in its initial velocity
+    assert float((joints_of(nxt)[0] - joints_of(shown)[0]).norm()) < 0.2
+
+
+@pytest.mark.parametrize("B", [1, 4])
+def test_guidance_gradients_match_autograd(B):
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(B, 15, 267, generator=g, dtype=torch.float64, requires_grad=True)
+    v = torch.randn(B, 3, generator=g, dtype=torch.float64)
+    r = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0, 1.0], dtype=torch.float64), dim=-1)
+    for fn, goal in ((move_loss_and_grad, v), (facing_loss_and_grad, r)):
+        loss, grad = fn(x, goal)
+        auto, = torch.autograd.grad(loss.sum(), x)
+        assert torch.allclose(grad, auto, atol=1e-9), fn.__name__
+
+
+def test_bad_arguments_are_named(motor, tmp_path):
+    crowd = Crowd(motor)
+    i = crowd.spawn()
+    with pytest.raises(ValueError, match="unknown impulse preset 'moonwalk'.*presets are"):
+        crowd.impulse(i, "moonwalk")
+    with pytest.raises(ValueError, match="goal velocity.*finite"):
+        crowd.set_goal(i, (math.nan, 0.0))
+    with pytest.raises(KeyError, match="no avatar 7"):
+        crowd.push(7, "head", (0, 0, 1))
+    with pytest.raises(ValueError, match="unknown joint"):
+        crowd.push(i, "tail", (0, 0, 1))
+    from avatar_motor.cli import main
+    bad = tmp_path / "bad.bvh"
+    bad.write_text("HIERARCHY\nROOT x\n{")
+    assert main(["generate", "--model", str(tmp_path / "tiny"), "--init", str(bad), "--out", str(tmp_path / "o.bvh")]) == 2
+    assert main(["generate", "--model", str(tmp_path / "tiny"), "--impulse", "nope@1", "--out", str(tmp_path / "o.bvh")]) == 2
+    assert main(["generate", "--model", str(tmp_path / "tiny"), "--goal", "nan,0", "--out", str(tmp_path / "o.bvh")]) == 2
+    assert not (tmp_path / "o.bvh").exists()
+
+
+def test_presets_follow_table_a1():
+    names = {"left_kick", "right_kick", "forward_run", "back_flip", "forward_roll"}
+    assert set(IMPULSE_PRESETS) == names
+    from avatar_motor.body.skeleton import JOINT_INDEX
+    assert IMPULSE_PRESETS["right_kick"][0] == [JOINT_INDEX["right_knee"], JOINT_INDEX["right_ankle"]]
+
+
+@pytest.mark.parametrize("ext", ["bvh", "npz", "glb"])
+def test_generate_files_reimport(motor, tmp_path, ext):
+    from avatar_motor.cli import main
+    out = tmp_path / f"m.{ext}"
+    assert main(["generate", "--model", str(tmp_path / "tiny"), "--seconds", "1", "--init",
+                 "tests/fixtures/walk_mixamo.bvh:5", "--impulse", "left_kick@0.3", "--out", str(out)]) == 0
+    if ext == "bvh":
+        from avatar_motor.data.retarget import retarget
+        from avatar_motor.io.bvh import read_bvh
+        from avatar_motor.body import rotations as rot
+        r = retarget(read_bvh(out), ground="keep")
+        assert r.info["skeleton"] == "smpl" and r.root_pos.shape == (30, 3)
+        from avatar_motor.io.export import read_npz_states  # noqa: F401
+    elif ext == "npz":
+        from avatar_motor.io.export import read_npz_states
+        X, fps = read_npz_states(out)
+        assert X.shape == (30, 267) and fps == 30
+    else:
+        from avatar_motor.io.gltf import read_glb
+        doc, _ = read_glb(out)
+        assert doc["asset"]["version"] == "2.0" and doc["animations"][0]["channels"]
