@@ -269,6 +269,44 @@ def _serve_headless(a, world) -> int:
     return 0
 
 
+def _optional_caches(names):
+    try:
+        return _caches(names)
+    except FileNotFoundError as e:
+        print(f"note: {e}; using standing initial states instead")
+        return None
+
+
+def _eval_control(a) -> int:
+    from .eval.control import control, format_control
+    from .model.checkpoint import load_checkpoint
+
+    rows, what = control(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
+    print(format_control(rows, what, a.n, a.seconds))
+    return 0
+
+
+def _eval_impulses(a) -> int:
+    from .eval.control import format_impulses, impulses
+    from .model.checkpoint import load_checkpoint
+
+    rows, what = impulses(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
+    print(format_impulses(rows, what, a.n, a.seconds))
+    return 0
+
+
+def _bench(a) -> int:
+    import torch
+
+    from .eval.control import bench
+    from .model.checkpoint import load_checkpoint
+
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avatar-motor", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -344,6 +382,22 @@ def build_parser() -> argparse.ArgumentParser:
     er.add_argument("--export", help="folder for BVH files of a few rollouts")
     er.add_argument("--json", help="write the figures as JSON")
     er.set_defaults(func=_eval_realism)
+    for name, fn, helptext in (("control", _eval_control, "speed/direction guidance errors (Table A2)"),
+                               ("impulses", _eval_impulses, "impulse presets: success, ASR, ANCR (Table 2)")):
+        e = ev.add_parser(name, help=helptext)
+        e.add_argument("--model", default=str(DEFAULT_MODEL))
+        e.add_argument("--n", type=int, default=45)
+        e.add_argument("--seconds", type=float, default=3.0)
+        e.add_argument("--steps", type=int)
+        e.add_argument("--seed", type=int, default=0)
+        e.add_argument("--data", nargs="*")
+        e.set_defaults(func=fn)
+    b = sub.add_parser("bench", help="per-segment timings (Table A6), crowd throughput, reaction latency")
+    b.add_argument("--model", default=str(DEFAULT_MODEL))
+    b.add_argument("--segments", type=int, default=10)
+    b.add_argument("--threads", type=int)
+    b.add_argument("--max-avatars", type=int, default=256)
+    b.set_defaults(func=_bench)
     return p
 
 

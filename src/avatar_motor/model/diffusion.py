@@ -81,10 +81,10 @@ class Diffusion:
                guide=None, eta: float = 1.0, noise: torch.Tensor | None = None) -> torch.Tensor:
         """Reverse diffusion. denoise(x_t, t_long) -> x0_hat.
 
-        guide(x0_hat) -> weighted gradient of the guidance losses w.r.t. the (normalized) sample,
-        evaluated on the x0 estimate. Classifier guidance (Dhariwal & Nichol) moves the posterior
-        mean by -variance * gradient; the last step (variance 0) is left to the model, so the
-        output is always the network's own, self-consistent estimate."""
+        guide(x0_hat) -> guided x0 estimate: the guidance losses' gradient steps are applied to the
+        x0 estimate before the posterior is formed (the posterior mean moves by coef1 times the
+        step). The last step is left to the network, so the output is always its own,
+        self-consistent estimate of the guided trajectory."""
         s = self.respaced(steps)
         x = randn(shape, generator) if noise is None else noise
         for k in range(len(s.timesteps) - 1, -1, -1):
@@ -93,16 +93,13 @@ class Diffusion:
             if k == 0:
                 x = x0
                 break
-            grad = guide(x0) if guide is not None else None
+            if guide is not None:
+                x0 = guide(x0)
             if eta >= 1.0:
                 mean, var = self.posterior(s, k, x0, x)
-                if grad is not None:
-                    mean = mean - var * grad
                 x = mean + math.sqrt(var) * randn(shape, generator)
             else:  # DDIM
                 ab, ab_prev = s.alphas_cumprod[k].item(), s.alphas_cumprod_prev[k].item()
-                if grad is not None:
-                    x0 = x0 - (1 - ab_prev) * grad
                 eps = (x - math.sqrt(ab) * x0) / math.sqrt(1 - ab)
                 sigma = eta * math.sqrt((1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev))
                 x = math.sqrt(ab_prev) * x0 + math.sqrt(max(1 - ab_prev - sigma**2, 0.0)) * eps

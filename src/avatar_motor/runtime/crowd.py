@@ -19,7 +19,7 @@ from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
 from ..data.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
-from .guidance import facing_loss_and_grad, move_loss_and_grad
+from .guidance import facing_loss_and_grad, move_loss_and_grad, path_loss_and_grad
 from .processing import inertialize, reproject, snap_to_ground
 
 
@@ -46,8 +46,10 @@ class RuntimeConfig:
     snap: bool = True
     inertialize: bool = True
     inertia_halflife: float = 0.1
-    move_weight: float = 50.0  # PRIMAL §9.2 defaults
-    facing_weight: float = 25.0
+    # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
+    move_weight: float = 50.0  # PRIMAL's L_move (mean joint velocity), its §9.2 default
+    path_weight: float = 40.0  # our L_path (centroid travels at the goal velocity)
+    facing_weight: float = 0.2  # PRIMAL's L_facing on the hips of the last frame
     eta: float = 1.0  # 1 = DDPM ancestral sampling, 0 = DDIM
 
 
@@ -237,7 +239,7 @@ class Crowd:
         # 2 condition embedding, 3 reverse diffusion with guidance
         norm = motor.norm
         cond = norm.encode(x0c.float())
-        guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float())
+        guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float(), x0c.float())
         B, N = len(x0), self.frames_per_segment
         seg_n = motor.diffusion.sample(lambda x_t, t: motor.net(t, x_t, cond), (B, N, STATE_DIM), cfg.steps,
                                        job["gens"], guide, cfg.eta)
@@ -260,7 +262,7 @@ class Crowd:
             if a is not None and a.epoch == epoch:
                 a.queue.extend(seg_w[k].unbind(0))
 
-    def _guidance(self, v_goals: list, f_goals: list, Rt: torch.Tensor):
+    def _guidance(self, v_goals: list, f_goals: list, Rt: torch.Tensor, x0c: torch.Tensor):
         cfg = self.cfg
         has_v = [v is not None for v in v_goals]
         has_f = [f is not None for f in f_goals]
@@ -269,16 +271,17 @@ class Crowd:
         z = torch.zeros(3)
         v_goal = torch.stack([Rt[k] @ (v if v is not None else z) for k, v in enumerate(v_goals)])
         f_goal = torch.stack([Rt[k] @ (f if f is not None else z) for k, f in enumerate(f_goals)])
-        wv = torch.tensor(has_v, dtype=torch.float32)[:, None, None] * cfg.move_weight
+        on_v = torch.tensor(has_v, dtype=torch.float32)[:, None, None]
         wf = torch.tensor(has_f, dtype=torch.float32)[:, None, None] * cfg.facing_weight
         norm = self.motor.norm
 
         def guide(x0n):
             x = norm.decode(x0n)
             _, gv = move_loss_and_grad(x, v_goal)
+            _, gp = path_loss_and_grad(x, x0c, v_goal)
             _, gf = facing_loss_and_grad(x, f_goal)
-            # chain rule into normalized space: dL/dxn = dL/dx * std
-            return (wv * gv + wf * gf) * norm.std
+            step = on_v * (cfg.move_weight * gv + cfg.path_weight * gp) + wf * gf  # real units
+            return norm.encode(x - step)
 
         return guide
 

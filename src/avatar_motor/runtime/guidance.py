@@ -29,6 +29,31 @@ def move_loss_and_grad(x: torch.Tensor, v_goal: torch.Tensor) -> tuple[torch.Ten
     return (diff**2).sum(-1), grad
 
 
+def path_loss_and_grad(x: torch.Tensor, x0: torch.Tensor, v_goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Our addition to PRIMAL's L_move: the body's centroid (22 joints and the root translation)
+    should travel from where it starts at v_goal, L_path = mean_i || c_i - (c_0 + v_goal i/fps) ||^2
+    over the horizontal plane. Its gradient moves the whole body rigidly per frame (every point
+    gets the same pull), so it steers without bending the pose; L_move alone acts on the velocity
+    channels only, which a small model follows weakly.
+    x (B, N, 267), x0 (B, 267) the initial state, v_goal (B, 3)."""
+    from ..data.motion_state import FPS
+    B, N, _ = x.shape
+
+    def centroid(s):
+        J = s[..., SLICES["joints"]].reshape(*s.shape[:-1], 22, 3)
+        return (J.sum(-2) + s[..., SLICES["root_pos"]]) / 23.0
+
+    c = centroid(x)
+    t = centroid(x0)[:, None] + v_goal[:, None] * (torch.arange(1, N + 1, dtype=x.dtype) / FPS)[None, :, None]
+    d = (c - t) * torch.tensor([1.0, 0.0, 1.0], dtype=x.dtype)
+    loss = (d**2).sum(-1).mean(-1)
+    g = 2 * d / (23.0 * N)  # (B, N, 3) per point
+    grad = torch.zeros_like(x)
+    grad[..., SLICES["root_pos"]] = g
+    grad[..., SLICES["joints"]] = g.repeat(1, 1, 22)
+    return loss, grad
+
+
 def facing_of(x_last: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit horizontal facing (B, 3) of states (B, 267) and the unnormalized vector g = left x up."""
     J = x_last[..., SLICES["joints"]].reshape(*x_last.shape[:-1], 22, 3)

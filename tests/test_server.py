@@ -1,0 +1,164 @@
+"""The server end to end through the Python client: streaming rate, acks, fuzzing, two viewers."""
+import asyncio
+import json
+import random
+import socket
+import threading
+import time
+
+import pytest
+
+from avatar_motor.client import Client
+from avatar_motor.runtime.crowd import RuntimeConfig
+from avatar_motor.serve.server import Server
+from avatar_motor.serve.world import World
+
+from .conftest_models import shipped_or_tiny
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Running:
+    """A server on a background thread with its own event loop."""
+
+    def __init__(self, world: World, token=None):
+        from aiohttp import web
+        self.port = free_port()
+        self.server = Server(world, "127.0.0.1", self.port, token)
+        self.loop = asyncio.new_event_loop()
+        self.runner = web.AppRunner(self.server.app)
+        started = threading.Event()
+
+        def run():
+            asyncio.set_event_loop(self.loop)
+            self.loop.run_until_complete(self.runner.setup())
+            self.loop.run_until_complete(web.TCPSite(self.runner, "127.0.0.1", self.port).start())
+            started.set()
+            self.loop.run_forever()
+
+        self.thread = threading.Thread(target=run, daemon=True)
+        self.thread.start()
+        assert started.wait(20)
+        self.url = f"ws://127.0.0.1:{self.port}/ws"
+
+    def stop(self):
+        asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(20)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    motor = shipped_or_tiny(tmp_path_factory.mktemp("m"))
+    world = World(motor, RuntimeConfig(), seed=0)
+    world.apply({"type": "spawn", "position": [0.0, 0.0]}, log=False)
+    r = Running(world)
+    # let generation get ahead before measuring
+    time.sleep(1.0)
+    yield r
+    r.stop()
+
+
+def test_stream_rate_acks_and_second_viewer(server):
+    with Client(server.url) as a, Client(server.url) as b:
+        assert a.welcome["version"] == 1 and len(a.welcome["joint_names"]) == 22
+        a.drain()
+        t0 = time.time()
+        frames = list(a.frames(300))  # 10 s at 30 fps
+        dt = time.time() - t0
+        rate = len(frames) / dt
+        print(f"received {len(frames)} frames in {dt:.2f} s = {rate:.1f} fps")
+        assert rate >= 29.0
+        idx = [f["frame"] for f in frames]
+        assert idx == sorted(idx)
+        # every command is acknowledged
+        for cmd in ({"type": "goal", "avatar": 0, "velocity": [1.0, 0.0]}, {"type": "impulse", "avatar": 0, "preset": "left_kick"},
+                    {"type": "push", "avatar": 0, "joint": "head", "velocity": [0, 0, 2.0]}, {"type": "target", "avatar": 0, "position": [3.0, 3.0]},
+                    {"type": "target", "avatar": 0, "position": None}, {"type": "goal", "avatar": 0, "velocity": None},
+                    {"type": "seed", "seed": 3}, {"type": "spawn", "position": [2.0, 0.0]}):
+            r = a.command(cmd)
+            assert r["type"] == "ack" and r["ok"], r
+        new = r["avatar"]
+        assert b.command({"type": "remove", "avatar": new})["ok"]
+        # the second viewer sees the same avatars
+        fb = next(b.frames(1))
+        assert set(fb["avatars"]) == {0}
+
+
+def test_fuzzed_messages_leave_the_server_alive_at_30fps(server):
+    rng = random.Random(0)
+    samples = ['{"type": "goal", "avatar": 0, "velocity": [1e309, 0]}', '{"type": "push"}', "[]", "null", "{",
+               '{"type": "impulse", "avatar": 0, "preset": "moonwalk"}', '{"type": "spawn", "shape": [9,9,9,9,9,9]}',
+               '{"type": "goal", "avatar": 99, "velocity": [0, 1]}', '{"type": "push", "avatar": 0, "joint": "tail", "velocity": [0,0,1]}',
+               '{"type": "reset", "avatar": "0"}', '{"type": "goal", "avatar": 0, "extra": 1}', "x" * 20000,
+               '{"type": "seed", "seed": -1}', json.dumps({"type": "label", "avatar": 0, "label": "wave"})]
+    with Client(server.url) as c:
+        errors = 0
+        for k in range(1000):
+            r = rng.random()
+            if r < 0.3:
+                msg = rng.choice(samples)
+            elif r < 0.5:
+                msg = bytes(rng.getrandbits(8) for _ in range(rng.randint(1, 64)))
+            elif r < 0.7:
+                msg = json.dumps({"type": rng.choice(["goal", "push", "impulse", "spawn", "bogus", 3, None]),
+                                  "avatar": rng.choice([0, -1, "a", 1.5, None]), "velocity": rng.choice([[1, 2], "fast", [None, 1], []])})
+            elif r < 0.8:
+                msg = "".join(chr(rng.randint(32, 0x2FF)) for _ in range(rng.randint(0, 200)))
+            else:  # flood of valid but rapid commands
+                msg = json.dumps({"type": "goal", "avatar": 0, "velocity": [rng.uniform(-2, 2), rng.uniform(-2, 2)]})
+            c.send_raw(msg)
+        # every message got a reply: count them
+        end = time.time() + 30
+        replies = 0
+        while replies < 1000 and time.time() < end:
+            try:
+                m = c.messages.get(timeout=1)
+            except Exception:
+                continue
+            if m.get("type") in ("ack", "error"):
+                replies += 1
+                errors += m["type"] == "error"
+        assert replies == 1000 and errors > 300
+        c.command({"type": "goal", "avatar": 0, "velocity": None})
+        c.command({"type": "reset", "avatar": 0})
+        c.drain()
+        t0 = time.time()
+        frames = list(c.frames(90))
+        assert len(frames) / (time.time() - t0) >= 29.0
+    with Client(server.url) as d:  # and a new client still connects
+        assert d.welcome["avatars"] == [0]
+
+
+def test_token_required_beyond_loopback(tmp_path):
+    motor = shipped_or_tiny(tmp_path)
+    with pytest.raises(ValueError, match="--token"):
+        Server(World(motor), host="0.0.0.0")
+    world = World(motor)
+    world.apply({"type": "spawn"}, log=False)
+    r = Running(world, token="s3cret")
+    try:
+        with Client(r.url) as c:
+            assert c.command({"type": "goal", "avatar": 0, "velocity": [1, 0]})["type"] == "error"
+            assert c.command({"type": "hello", "token": "s3cret"})["ok"]
+            assert c.command({"type": "goal", "avatar": 0, "velocity": [1, 0]})["ok"]
+    finally:
+        r.stop()
+
+
+def test_headless_replay_is_reproducible(tmp_path):
+    motor = shipped_or_tiny(tmp_path)
+    script = [{"frame": 10, "cmd": {"type": "impulse", "avatar": 0, "preset": "forward_run"}},
+              {"frame": 40, "cmd": {"type": "goal", "avatar": 0, "velocity": [0.0, 1.0]}}]
+    runs = []
+    for _ in range(2):
+        w = World(motor, seed=4)
+        w.apply({"type": "spawn"}, log=False)
+        w.run_offline(80, script)
+        runs.append(w.recording(0))
+        assert [e["frame"] for e in w.events] == [10, 40]
+    assert (runs[0] - runs[1]).abs().max() == 0
