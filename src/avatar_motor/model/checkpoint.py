@@ -42,8 +42,9 @@ class Motor:
 
 
 def save_checkpoint(folder: str | Path, net: Denoiser, norm: Normalizer, extra: dict | None = None,
-                    card: str | None = None, diffusion_steps: int = 50) -> Path:
-    """Write atomically: a temporary sibling folder is filled, then renamed over the target."""
+                    card: str | None = None, diffusion_steps: int = 50, half: bool = False) -> Path:
+    """Write atomically: a temporary sibling folder is filled, then renamed over the target.
+    half=True stores the weights as float16 (half the size; loading casts back to float32)."""
     folder = Path(folder)
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -57,7 +58,8 @@ def save_checkpoint(folder: str | Path, net: Denoiser, norm: Normalizer, extra: 
         "normalizer": norm.to_dict(),
         **(extra or {}),
     }
-    save_file({k: v.detach().contiguous().cpu() for k, v in net.state_dict().items()}, str(tmp / "model.safetensors"))
+    dtype = torch.float16 if half else torch.float32
+    save_file({k: v.detach().to(dtype).contiguous().cpu() for k, v in net.state_dict().items()}, str(tmp / "model.safetensors"))
     (tmp / "config.json").write_text(json.dumps(cfg, indent=1))
     (tmp / "card.md").write_text(card or f"# {folder.name}\n\nNo card was written for this checkpoint.\n")
     old = folder.with_name(folder.name + f".old{os.getpid()}")
@@ -66,6 +68,14 @@ def save_checkpoint(folder: str | Path, net: Denoiser, norm: Normalizer, extra: 
     tmp.rename(folder)
     shutil.rmtree(old, ignore_errors=True)
     return folder
+
+
+def ship_checkpoint(src: str | Path, dst: str | Path, card: str, extra: dict | None = None) -> Path:
+    """Copy a trained checkpoint into a shippable one: float16 weights, a card, extra config."""
+    m = load_checkpoint(src)
+    cfg = {k: v for k, v in m.config.items() if k not in ("format", "denoiser", "state_layout", "state_dim", "diffusion", "normalizer")}
+    cfg.update(extra or {})
+    return save_checkpoint(dst, m.net, m.norm, cfg, card, m.diffusion.T, half=True)
 
 
 def load_checkpoint(folder: str | Path) -> Motor:
@@ -112,6 +122,6 @@ def load_checkpoint(folder: str | Path) -> Motor:
     for k, v in weights.items():
         if not torch.isfinite(v).all():
             raise CheckpointError(f"{w_path}: tensor {k} contains NaN or infinite values")
-    net.load_state_dict(weights)
+    net.load_state_dict({k: v.float() for k, v in weights.items()})
     net.eval()
     return Motor(net, norm, Diffusion(cfg["diffusion"]["train_steps"]), cfg, folder)
