@@ -167,3 +167,18 @@ def test_generate_files_reimport(motor, tmp_path, ext):
         from avatar_motor.io.gltf import read_glb
         doc, _ = read_glb(out)
         assert doc["asset"]["version"] == "2.0" and doc["animations"][0]["channels"]
+
+
+def test_smoothing_removes_frame_noise_and_keeps_the_join():
+    from avatar_motor.eval.metrics import jitter
+    from avatar_motor.runtime.processing import smooth_segment
+    x = walk_states()
+    x0, seg = x[:, 0], x[:, 1:]
+    noisy = seg.clone()
+    noisy[..., 135:201] += torch.randn(noisy[..., 135:201].shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.005
+    out = smooth_segment(x0, noisy, 1.0)
+    full = lambda s: joints_of(torch.cat((x0[:, None], s), 1))  # noqa: E731
+    assert jitter(full(out)) < 0.3 * jitter(full(noisy))
+    assert (joints_of(out) - joints_of(seg)).abs().mean() < 0.01  # the motion itself is kept
+    assert torch.allclose(velocities_of(out)[:, 0], (joints_of(out)[:, 0] - joints_of(x0)) * FPS)
+    assert torch.equal(smooth_segment(x0, noisy, 0.0), noisy)

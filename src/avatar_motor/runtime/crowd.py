@@ -20,7 +20,7 @@ from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinemat
 from ..data.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, move_loss_and_grad, path_loss_and_grad
-from .processing import inertialize, reproject, snap_to_ground
+from .processing import inertialize, reproject, smooth_segment, snap_to_ground
 
 
 def _joints(*names: str) -> list[int]:
@@ -42,10 +42,11 @@ IMPULSE_SCALE = 10.0
 @dataclass
 class RuntimeConfig:
     steps: int = 10  # denoising steps per segment (PRIMAL: 10 "not visibly inferior" to 50)
-    reproject: bool = True
+    reproject: bool = False  # PRIMAL's joint re-projection; off: our small model's rotations lag its joints (see card)
     snap: bool = True
     inertialize: bool = True
     inertia_halflife: float = 0.1
+    smooth_sigma: float = 1.0  # temporal low-pass of each segment, frames (0 = off); our addition
     # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
     move_weight: float = 50.0  # PRIMAL's L_move (mean joint velocity), its §9.2 default
     path_weight: float = 40.0  # our L_path (centroid travels at the goal velocity)
@@ -245,6 +246,8 @@ class Crowd:
                                        job["gens"], guide, cfg.eta)
         t2 = time.perf_counter()
         seg = norm.decode(seg_n).double()
+        if cfg.smooth_sigma > 0:
+            seg = smooth_segment(x0c, seg, cfg.smooth_sigma)
         if cfg.snap:
             seg = snap_to_ground(seg)
         if cfg.inertialize:

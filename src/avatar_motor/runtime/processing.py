@@ -20,6 +20,32 @@ def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float = 1.0) -> torch.Tensor:
+    """Temporal low-pass of a generated segment (our addition to PRIMAL's processing): a Gaussian
+    of `sigma` frames along time over root position, rotations (in 6D, re-orthonormalized) and joint
+    locations, with the initial state x0 (B, 267) fixed in front so the join stays continuous and
+    the end reflected. The network's x0 estimate keeps a little of the last step's noise; at 30 fps
+    that is mm-scale jitter which reads as foot skating. Velocities are recomputed afterwards."""
+    if sigma <= 0:
+        return seg
+    B, N, D = seg.shape
+    r = max(1, int(math.ceil(2.5 * sigma)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=seg.dtype) / sigma) ** 2)
+    k = k / k.sum()
+    # x0 repeated in front (the past is held), the end reflected
+    pad_front = x0[:, None].expand(B, r, D)
+    pad_back = seg.flip(1)[:, 1:r + 1]
+    if pad_back.shape[1] < r:
+        pad_back = torch.cat((pad_back, seg[:, -1:].expand(B, r - pad_back.shape[1], D)), 1)
+    full = torch.cat((pad_front, seg, pad_back), 1)  # (B, N + 2r, D)
+    out = torch.nn.functional.conv1d(full.transpose(1, 2).reshape(B * D, 1, -1), k.view(1, 1, -1)).reshape(B, D, N).transpose(1, 2)
+    u = unpack(out)
+    prev = torch.cat((x0[:, None], out[:, :-1]), 1)
+    J_prev = prev[..., SLICES["joints"]].reshape(B, N, 22, 3)
+    # re-orthonormalize rotations through 6D -> matrix -> 6D (pack does it) and difference velocities
+    return pack(u.root_pos, u.root_rot, u.local_rot, u.joints, (u.joints - J_prev) * FPS)
+
+
 def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.Tensor:
     """Translate each segment (B, N, 267) vertically so its lowest joint over all frames sits at
     `ground` (the height of a standing foot joint): over 0.5 s some joint touches the ground."""
