@@ -303,6 +303,10 @@ def _bench(a) -> int:
 
     if a.threads:
         torch.set_num_threads(a.threads)
+    if a.serve:
+        from .eval.serve_bench import serve_bench
+        print(serve_bench(a.model))
+        return 0
     print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars))
     return 0
 
@@ -397,6 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--segments", type=int, default=10)
     b.add_argument("--threads", type=int)
     b.add_argument("--max-avatars", type=int, default=256)
+    b.add_argument("--serve", action="store_true", help="measure a served world through the socket instead")
     b.set_defaults(func=_bench)
     return p
 

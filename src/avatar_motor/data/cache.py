@@ -159,6 +159,11 @@ class _InProcess:
         return f
 
 
+def _worker_init() -> None:
+    import torch
+    torch.set_num_threads(1)  # one process per core already: more threads only contend
+
+
 def _convert_job(args):
     key, data, mapping, unit = args
     return key, convert_clip(key, data, mapping, unit)
@@ -197,7 +202,8 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
     stamps = {}
     bar = tqdm(desc=f"import {name}", unit="clip", disable=not progress)
     # spawn, not fork: a forked child of a process whose torch thread pool already ran can deadlock
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) if workers > 1 else _InProcess()
+    pool = (ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
+            if workers > 1 else _InProcess())
     with pool:
         pending = []
 
