@@ -49,14 +49,21 @@ def test_inertialization_is_continuous_then_decays():
     x0, seg = x[:, 0], x[:, 1:].clone()
     seg[..., 135:201] += 0.3  # a jump at the segment start
     out = inertialize(x0, seg, halflife=0.1)
-    J0, V0 = joints_of(x0), velocities_of(x0)
-    assert torch.allclose(joints_of(out)[:, 0], J0 + V0 / FPS, atol=1e-6)  # where x0 was heading
-    late = (joints_of(out)[:, -1] - joints_of(seg)[:, -1]).abs().max()
-    assert late < 0.02 * 0.3 * 3  # offset almost gone after 0.5 s
-    assert torch.allclose(velocities_of(out)[:, 1:], (joints_of(out)[:, 1:] - joints_of(out)[:, :-1]) * FPS, atol=1e-6)
-    # rotations blend too: frame 1 keeps the initial state's rotations
+    J = joints_of(out)
+    clean = joints_of(inertialize(x0, x[:, 1:], halflife=0.1))
+    # the jump is hidden at the join: frame 1 lands where it would have without the jump
+    assert (J[:, 0] - clean[:, 0]).abs().max() < 0.3 * 0.1
+    late = (J[:, -1] - joints_of(seg)[:, -1]).abs().max()
+    assert late < 0.02 * 0.3  # offset almost gone after 0.5 s
+    assert torch.allclose(velocities_of(out)[:, 1:], (J[:, 1:] - J[:, :-1]) * FPS, atol=1e-6)
+    # an impulse in x0's velocity is not extrapolated into a broken skeleton
+    kicked = x0.clone()
+    kicked[:, 201 + 45:201 + 48] += 30.0  # head flung at 30 m/s
+    bones = lambda s: (joints_of(s)[..., 15, :] - joints_of(s)[..., 12, :]).norm(dim=-1)  # noqa: E731
+    assert torch.allclose(bones(inertialize(kicked, x[:, 1:], 0.1)), bones(x[:, 1:]), atol=0.02)
+    # rotations blend too: frame 1 is close to the initial state's rotation
     u0, u = unpack(x0), unpack(out)
-    assert torch.allclose(u.root_rot[:, 0], u0.root_rot, atol=1e-6)
+    assert (u.root_rot[:, 0] - u0.root_rot).abs().max() < 0.1
 
 
 def test_reprojection_replaces_joints_by_fk():

@@ -28,7 +28,7 @@ def _joints(*names: str) -> list[int]:
 
 
 # PRIMAL supplementary Table A1, body-centric (X left, Y up, Z forward). The table's velocities
-# are scaled by IMPULSE_SCALE into m/s (PRIMAL's own velocities are per-frame displacements).
+# are per-frame displacements (PRIMAL trains on them, use_metric_velocity=false): x 30 fps = m/s.
 IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
     "left_kick": (_joints("left_knee", "left_ankle"), (0.0, 0.0, 0.5)),
     "right_kick": (_joints("right_knee", "right_ankle"), (0.0, 0.0, 0.5)),  # the table's row names left joints
@@ -36,7 +36,7 @@ IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
     "back_flip": (_joints("head"), (0.0, 0.0, -1.0)),
     "forward_roll": (_joints("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow"), (0.0, -0.5, 0.5)),
 }
-IMPULSE_SCALE = 10.0
+IMPULSE_SCALE = 30.0
 
 
 @dataclass

@@ -72,27 +72,28 @@ def spring_decay(x: torch.Tensor, v: torch.Tensor, halflife: float, t: torch.Ten
 def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1) -> torch.Tensor:
     """Blend the start of generated frames seg (B, N, 267) into the initial state x0 (B, 267).
 
-    The offset between where x0 was heading (x0 + its velocity over one frame) and the first new
-    frame is applied in full at frame 1 and decays as a critically damped spring, for the root
-    position, the joint locations and every rotation (as rotation vectors). Velocities are then
-    recomputed as backward differences, so the result is a consistent state sequence.
+    The new motion, extrapolated back one frame to the time of x0 (x1 - (x2 - x1)), should be x0;
+    the difference is an offset that decays as a critically damped spring (Holden's
+    inertialization) over the segment, for the root position, the joint locations and every
+    rotation (as rotation vectors). The velocity offset is taken as zero: x0's velocity may carry
+    an impulse, which the network has already turned into motion and must not be added again.
+    Velocities are then recomputed as backward differences, so the result is consistent.
     """
     B, N, _ = seg.shape
     dt = 1.0 / FPS
-    t = (torch.arange(N, dtype=seg.dtype) * dt)[None, :, None]  # frame 1 -> t = 0
+    t = (torch.arange(1, N + 1, dtype=seg.dtype) * dt)[None, :, None]
     u0, u = unpack(x0), unpack(seg)
-    # positions: joints and root
-    J_expect = u0.joints + u0.velocities * dt
-    off_J = J_expect - u.joints[:, 0]
-    v_new = (u.joints[:, 1] - u.joints[:, 0]) / dt if N > 1 else torch.zeros_like(off_J)
-    off_v = u0.velocities - v_new
-    dJ = spring_decay(off_J.reshape(B, 1, 66), off_v.reshape(B, 1, 66), halflife, t).reshape(B, N, 22, 3)
+    nxt = 1 if N > 1 else 0
+    back = 2 * u.joints[:, 0] - u.joints[:, nxt]  # the segment extrapolated to x0's time
+    off_J = (u0.joints - back).reshape(B, 1, 66)
+    dJ = spring_decay(off_J, torch.zeros_like(off_J), halflife, t).reshape(B, N, 22, 3)
     joints = u.joints + dJ
     root_pos = u.root_pos + dJ[:, :, 0]  # the root is the pelvis
-    # rotations: offset from the first new frame back to the initial state's rotation
     R0 = torch.cat((u0.root_rot[:, None], u0.local_rot), 1)  # (B, 22, 3, 3)
     R = torch.cat((u.root_rot[:, :, None], u.local_rot), 2)  # (B, N, 22, 3, 3)
-    off_r = rot.matrix_to_axis_angle(R0 @ R[:, 0].transpose(-1, -2))  # (B, 22, 3)
+    # rotation extrapolated back one frame: R1 (R2^T R1)
+    R_back = R[:, 0] @ (R[:, nxt].transpose(-1, -2) @ R[:, 0])
+    off_r = rot.matrix_to_axis_angle(R0 @ R_back.transpose(-1, -2))  # (B, 22, 3)
     d_r = spring_decay(off_r[:, None], torch.zeros_like(off_r[:, None]), halflife, t[..., None])
     R = rot.axis_angle_to_matrix(d_r) @ R
     prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
