@@ -40,6 +40,17 @@ def test_studio_in_chromium(tmp_path, artifacts):
             # a push through the page's own socket: the head is thrown backwards
             ack = page.evaluate("window.studio.send({type: 'push', avatar: 0, joint: 'head', velocity: [0, 0, -4]})")
             assert ack["ok"]
+            # and one with the mouse: drag the pelvis sideways
+            x, y = page.evaluate("window.studio.screenOf(0, 0)")
+            page.mouse.move(x, y)
+            page.mouse.down()
+            page.mouse.move(x + 80, y, steps=5)
+            page.mouse.up()
+            deadline = time.time() + 5
+            while time.time() < deadline and not any(e["cmd"]["type"] == "push" and e["cmd"]["joint"] != "head" for e in world.events):
+                time.sleep(0.1)
+            drag = [e["cmd"] for e in world.events if e["cmd"]["type"] == "push" and e["cmd"]["joint"] != "head"]
+            assert drag and abs(drag[-1]["velocity"][0]) + abs(drag[-1]["velocity"][2]) > 0.1, world.events
             # steering from the keyboard: hold D (camera-relative right) and watch the pelvis travel
             p0 = page.evaluate("window.studio.pelvis(0)")
             page.keyboard.down("KeyW")

@@ -160,6 +160,12 @@ function onFrame(buf) {
   refreshSelect();
 }
 state.pelvis = (id) => { const b = bodies.get(id ?? state.selected); return b && b.positions ? Array.from(b.positions.slice(0, 3)) : null; };
+state.screenOf = (id, joint) => {  // pixel position of a joint (tests drive the mouse with it)
+  const b = bodies.get(id);
+  if (!b || !b.positions) return null;
+  const v = new THREE.Vector3(b.positions[3 * joint], b.positions[3 * joint + 1], b.positions[3 * joint + 2]).project(camera);
+  return [(v.x + 1) / 2 * window.innerWidth, (1 - v.y) / 2 * window.innerHeight];
+};
 state.joints = (id) => { const b = bodies.get(id ?? state.selected); return b && b.positions ? Array.from(b.positions) : null; };
 
 function refreshSelect() {
