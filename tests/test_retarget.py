@@ -102,3 +102,15 @@ def test_bandai_clip(bandai, artifacts):
     # Bandai has Spine and Chest; our spine2 sits between them: the bend is spread
     assert (J[:, 6] - 0.5 * (J[:, 3] + J[:, 9])).norm(dim=-1).max() < 0.1
     contact_sheet([J.numpy()], artifacts / "retarget_bandai.png", titles=["bandai walk"])
+
+
+@pytest.mark.parametrize("unit,factor", [("m", 0.01), ("mm", 10.0), ("cm", 1.0), ("ft", 1 / 30.48)])
+def test_unit_detection_from_stature(unit, factor):
+    b = read_bvh(FIXTURES / "walk_lafan1.bvh")  # centimetres
+    b.offsets = b.offsets * factor
+    b.end_sites = {k: v * factor for k, v in b.end_sites.items()}
+    b.motion = b.motion.copy()
+    b.motion[:, :3] *= factor  # root position channels
+    r = retarget(b)
+    assert r.info["unit"] == unit
+    assert np.allclose(r.root_pos, retarget(read_bvh(FIXTURES / "walk_lafan1.bvh")).root_pos, atol=1e-4)
