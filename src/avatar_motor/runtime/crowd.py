@@ -221,7 +221,7 @@ class Crowd:
                 "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
                 "v_goal": [a.v_goal for a in avs], "facing_goal": [a.facing_goal for a in avs]}
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def compute(self, job) -> torch.Tensor:
         """Algorithm 1 for a prepared batch; touches no avatar (safe outside the lock)."""
         import time

@@ -1,0 +1,23 @@
+import pytest
+
+from avatar_motor.cli import build_parser, main
+
+
+@pytest.mark.parametrize("cmd", [["train"], ["data", "import"], ["data", "show"], ["data", "list"], ["generate"], ["serve"],
+                                 ["eval", "realism"], ["eval", "control"], ["eval", "impulses"], ["bench"]])
+def test_every_command_has_help(cmd, capsys):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(cmd + ["--help"])
+    assert e.value.code == 0 and "usage: avatar-motor" in capsys.readouterr().out
+
+
+def test_clear_errors_for_missing_things(tmp_path, capsys):
+    assert main(["train", "--steps", "1", "--out", str(tmp_path / "r")]) == 2
+    assert "data import" in capsys.readouterr().err
+    assert main(["generate", "--model", str(tmp_path / "nope"), "--out", str(tmp_path / "x.bvh")]) == 2
+    assert "no such checkpoint folder" in capsys.readouterr().err
+    assert main(["generate", "--out", str(tmp_path / "x.txt")]) == 2
+    assert "use a .bvh, .glb or .npz" in capsys.readouterr().err
+    assert main(["data", "import", str(tmp_path / "missing")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["data", "list"]) == 0
