@@ -1,0 +1,147 @@
+"""Adaptation of a frozen base denoiser to a control signal (PRIMAL §4, Fig. 3).
+
+Three methods, as compared in PRIMAL's Tables A3/A4:
+- "controlnet" (PRIMAL's): a trainable copy of every transformer block; the control embedding
+  is added to the previous block's output before it enters the copy, and the copy's output
+  returns through a zero-initialised projection into the base stream. Base frozen.
+- "omni" (OmniControlNet-style): the same copies, but the control is fused once, at the input
+  of a chain of copies. Base frozen.
+- "finetune": the control embedding is added to the time embedding and the whole base trains.
+The control is an action label (embedding layer, with a null label for classifier-free
+dropout) or a 2-D target (linear embedding; a mask stands for "no target").
+`scale` multiplies the adaptor's residuals: 0 gives the base model exactly, 1 the trained
+adaptor, above 1 a stronger effect (the CFG weight of Eq. 3 in its residual form).
+Adaptor weights are saved on their own (safetensors + JSON), so many adaptors share one base.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from .denoiser import Denoiser
+
+ADAPTOR_FORMAT = "avatar-motor-adaptor/1"
+KINDS = ("controlnet", "omni", "finetune")
+CONTROLS = ("label", "target")
+
+
+@dataclass
+class AdaptorConfig:
+    kind: str = "controlnet"
+    control: str = "label"
+    labels: list[str] = field(default_factory=list)  # for control == "label"
+    control_dropout: float = 0.1  # probability of training with the null control (CFG)
+
+    def validate(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"adaptor kind must be one of {KINDS}, got {self.kind!r}")
+        if self.control not in CONTROLS:
+            raise ValueError(f"adaptor control must be one of {CONTROLS}, got {self.control!r}")
+        if self.control == "label" and len(self.labels) < 1:
+            raise ValueError("a label adaptor needs at least one label")
+
+
+def rescale_target(xz: torch.Tensor) -> torch.Tensor:
+    """PRIMAL's target encoding: 2(1 - exp(-|x|)) x/|x| (bounded, fine near the body)."""
+    n = xz.norm(dim=-1, keepdim=True)
+    return 2 * (1 - torch.exp(-n)) * xz / n.clamp_min(1e-6)
+
+
+class AdaptedDenoiser(nn.Module):
+    def __init__(self, base: Denoiser, cfg: AdaptorConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.base = base
+        w = base.cfg.width
+        if cfg.control == "label":
+            self.embed = nn.Embedding(len(cfg.labels) + 1, w)  # the last index is the null label
+        else:
+            self.embed = nn.Linear(2, w)
+        if cfg.kind in ("controlnet", "omni"):
+            self.copies = copy.deepcopy(base.blocks)
+            self.zero = nn.ModuleList(nn.Linear(w, w) for _ in base.blocks)
+            for z in self.zero:
+                nn.init.zeros_(z.weight)
+                nn.init.zeros_(z.bias)
+            for p in self.base.parameters():
+                p.requires_grad_(False)
+
+    @property
+    def null_label(self) -> int:
+        return len(self.cfg.labels)
+
+    def control_embedding(self, y: torch.Tensor, drop: torch.Tensor | None = None) -> torch.Tensor:
+        """y: (B,) long labels or (B, 2) canonical targets; drop (B,) bool selects the null control."""
+        if self.cfg.control == "label":
+            if drop is not None:
+                y = torch.where(drop, torch.full_like(y, self.null_label), y)
+            return self.embed(y)
+        e = self.embed(rescale_target(y))
+        return e if drop is None else e * (~drop)[:, None].float()
+
+    def forward(self, t, x_t, x0, y, scale: float = 1.0, drop: torch.Tensor | None = None) -> torch.Tensor:
+        base = self.base
+        cond = base.condition(t, x0)
+        e = self.control_embedding(y, drop)
+        if self.cfg.kind == "finetune":
+            cond = cond + scale * e
+            h = base.tokens(x_t, cond)
+            for blk in base.blocks:
+                h = blk(h, cond)
+            return base.head(h)
+        h = base.tokens(x_t, cond)
+        c = h
+        for i, blk in enumerate(base.blocks):
+            if self.cfg.kind == "controlnet":
+                c = self.copies[i](h + e[:, None], cond)
+            else:  # omni: the control enters once, the copies form their own chain
+                c = self.copies[i](c + e[:, None] if i == 0 else c, cond)
+            h = blk(h, cond) + scale * self.zero[i](c)
+        return base.head(h)
+
+    def adaptor_state(self) -> dict[str, torch.Tensor]:
+        """The weights that belong to the adaptor (for finetune: the whole tuned network)."""
+        return {k: v for k, v in self.state_dict().items() if self.cfg.kind == "finetune" or not k.startswith("base.")}
+
+
+def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, info: dict | None = None) -> Path:
+    folder = Path(folder)
+    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    save_file({k: v.detach().contiguous() for k, v in model.adaptor_state().items()}, str(tmp / "adaptor.safetensors"))
+    (tmp / "adaptor.json").write_text(json.dumps({"format": ADAPTOR_FORMAT, "adaptor": asdict(model.cfg),
+                                                  "base_model": base_name, **(info or {})}, indent=1))
+    if folder.exists():
+        shutil.rmtree(folder)
+    tmp.rename(folder)
+    return folder
+
+
+def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = None) -> AdaptedDenoiser:
+    folder = Path(folder)
+    try:
+        meta = json.loads((folder / "adaptor.json").read_text())
+        weights = load_file(str(folder / "adaptor.safetensors"))
+    except Exception as e:  # noqa: BLE001 - any unreadable file gets the same clear message
+        raise ValueError(f"{folder}: not a readable adaptor ({e}); pass a folder written by 'avatar-motor adapt'") from None
+    if meta.get("format") != ADAPTOR_FORMAT:
+        raise ValueError(f"{folder}: format {meta.get('format')!r} is not {ADAPTOR_FORMAT!r}")
+    if base_name is not None and meta.get("base_model") != base_name:
+        raise ValueError(f"{folder}: adaptor was trained on base model {meta.get('base_model')!r}, not {base_name!r}")
+    model = AdaptedDenoiser(base, AdaptorConfig(**meta["adaptor"]))
+    missing, unexpected = model.load_state_dict(weights, strict=False)
+    expected = set(model.adaptor_state())
+    if set(weights) != expected:
+        raise ValueError(f"{folder}: adaptor weights do not match its config (missing {sorted(expected - set(weights))[:3]}, "
+                         f"unexpected {sorted(set(weights) - expected)[:3]})")
+    return model.eval()

@@ -1,0 +1,71 @@
+import pytest
+import torch
+
+from avatar_motor.data.motion_state import STATE_DIM
+from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig, load_adaptor, rescale_target, save_adaptor
+from avatar_motor.model.denoiser import Denoiser, DenoiserConfig
+
+CFG = DenoiserConfig(width=32, depth=2, heads=4, ff=64, dropout=0.0)
+
+
+def inputs(B=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randint(0, 50, (B,), generator=g), torch.randn(B, 15, STATE_DIM, generator=g), torch.randn(B, STATE_DIM, generator=g))
+
+
+def base_net():
+    torch.manual_seed(0)
+    return Denoiser(CFG).eval()
+
+
+@pytest.mark.parametrize("kind", ["controlnet", "omni"])
+def test_zero_initialised_adaptor_leaves_base_unchanged(kind):
+    base = base_net()
+    t, x, x0 = inputs()
+    ref = base(t, x, x0)
+    m = AdaptedDenoiser(base, AdaptorConfig(kind=kind, labels=["a", "b"])).eval()
+    assert torch.equal(m(t, x, x0, torch.tensor([0, 1, 0])), ref)
+
+
+@pytest.mark.parametrize("kind", ["controlnet", "omni"])
+def test_training_leaves_frozen_base_bit_identical_and_scale_zero_is_base(kind):
+    base = base_net()
+    before = {k: v.clone() for k, v in base.state_dict().items()}
+    m = AdaptedDenoiser(base, AdaptorConfig(kind=kind, labels=["a", "b"]))
+    opt = torch.optim.AdamW([p for p in m.parameters() if p.requires_grad], lr=1e-2)
+    t, x, x0 = inputs()
+    y = torch.tensor([0, 1, 1])
+    for _ in range(5):
+        loss = (m(t, x, x0, y) - x).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    for k, v in base.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    m.eval()
+    assert not torch.equal(m(t, x, x0, y), base(t, x, x0))  # it learned something
+    assert torch.equal(m(t, x, x0, y, scale=0.0), base(t, x, x0))
+
+
+def test_targets_and_saving(tmp_path):
+    base = base_net()
+    m = AdaptedDenoiser(base, AdaptorConfig(control="target"))
+    torch.nn.init.normal_(m.zero[0].weight)
+    t, x, x0 = inputs()
+    y = torch.tensor([[1.5, 0.0], [0.0, -1.0], [0.3, 0.3]])
+    out = m.eval()(t, x, x0, y)
+    save_adaptor(tmp_path / "a", m, "base-x")
+    m2 = load_adaptor(tmp_path / "a", base_net(), "base-x")
+    assert torch.equal(m2(t, x, x0, y), out)
+    assert not any(k.startswith("base.") for k in m.adaptor_state())  # saved without the base
+    with pytest.raises(ValueError, match="trained on base model"):
+        load_adaptor(tmp_path / "a", base_net(), "other")
+    r = rescale_target(torch.tensor([[3.0, 4.0]]))
+    assert torch.allclose(r.norm(), torch.tensor(2 * (1 - torch.exp(torch.tensor(-5.0)))))
+
+
+def test_validation():
+    with pytest.raises(ValueError, match="kind"):
+        AdaptedDenoiser(base_net(), AdaptorConfig(kind="lora", labels=["a"]))
+    with pytest.raises(ValueError, match="at least one label"):
+        AdaptedDenoiser(base_net(), AdaptorConfig(labels=[]))
