@@ -69,3 +69,27 @@ def test_validation():
         AdaptedDenoiser(base_net(), AdaptorConfig(kind="lora", labels=["a"]))
     with pytest.raises(ValueError, match="at least one label"):
         AdaptedDenoiser(base_net(), AdaptorConfig(labels=[]))
+
+
+@pytest.mark.parametrize("task", ["actions", "reach"])
+def test_adapt_command_trains_and_saves(tmp_path, task):
+    import shutil
+    from avatar_motor.cli import main
+    from avatar_motor.data.cache import import_motion
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from .conftest_models import tiny_motor
+    from .fixture_tools import FIXTURES
+    tiny_motor(tmp_path)
+    src = tmp_path / "clips"
+    src.mkdir()
+    for name, content in (("walk_lafan1", "walk"), ("walk_cmu", "wave"), ("walk_mixamo", "walk")):
+        shutil.copy(FIXTURES / f"{name}.bvh", src / f"dataset-9_{content}_normal_00{len(list(src.iterdir()))}.bvh")
+    import_motion(src, name="labelled", progress=False, workers=1)
+    args = ["adapt", task, "--model", str(tmp_path / "tiny"), "--data", "labelled", "--steps", "3", "--batch", "4",
+            "--out", str(tmp_path / "ad"), "--split", "all"]
+    assert main(args) == 0
+    m = load_adaptor(tmp_path / "ad" / "adaptor", load_checkpoint(tmp_path / "tiny").net)
+    assert m.cfg.control == ("label" if task == "actions" else "target")
+    if task == "actions":
+        assert m.cfg.labels == ["walk", "wave"]
+        assert main(args[:-2] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named

@@ -311,6 +311,17 @@ def _bench(a) -> int:
     return 0
 
 
+def _adapt(a) -> int:
+    from .train.adapt import AdaptConfig, adapt
+
+    cfg = AdaptConfig(base=a.model, data=a.data or ["dataset-1"], out=a.out, task=a.task, kind=a.kind,
+                      label_key=a.label_key, classes=[c for c in (a.classes or "").split(",") if c],
+                      steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split)
+    path = adapt(cfg)
+    print(f"adaptor written to {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avatar-motor", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -343,6 +354,20 @@ def build_parser() -> argparse.ArgumentParser:
     ls = d.add_parser("list", help="list the motion caches (and with --clips their clips)")
     ls.add_argument("--clips", action="store_true")
     ls.set_defaults(func=_data_list)
+
+    ad = sub.add_parser("adapt", help="train an adaptor on a frozen base model: action labels or 2-D targets")
+    ad.add_argument("task", choices=["actions", "reach"])
+    ad.add_argument("--model", default=str(DEFAULT_MODEL), help="the base model")
+    ad.add_argument("--data", nargs="*", help="motion caches (default: dataset-1)")
+    ad.add_argument("--kind", choices=["controlnet", "omni", "finetune"], default="controlnet")
+    ad.add_argument("--label-key", default="content", help="which clip label is the action (Bandai: content or style)")
+    ad.add_argument("--classes", help="comma-separated labels to learn (default: all)")
+    ad.add_argument("--steps", type=int, default=2000)
+    ad.add_argument("--batch", type=int)
+    ad.add_argument("--seed", type=int, default=0)
+    ad.add_argument("--out", default="runs/adapt")
+    ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
+    ad.set_defaults(func=_adapt)
 
     sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")
     sv.add_argument("--model", default=str(DEFAULT_MODEL))

@@ -31,15 +31,18 @@ class SegmentConfig:
 
 
 class SegmentDataset:
-    def __init__(self, caches: list[MotionCache], cfg: SegmentConfig | None = None):
+    def __init__(self, caches: list[MotionCache], cfg: SegmentConfig | None = None, clip_filter=None):
+        """clip_filter(clip metadata) -> bool keeps only some clips (e.g. chosen action classes)."""
         self.cfg = cfg or SegmentConfig()
         need = self.cfg.frames + 2
-        roots, quats, starts, lens, names = [], [], [], [], []
+        roots, quats, starts, lens, names, labels = [], [], [], [], [], []
         offset = 0
         for cache in caches:
             for i, clip in enumerate(cache.clips):
                 held = is_held_out(clip["key"])
                 if (self.cfg.split == "train" and held) or (self.cfg.split == "heldout" and not held):
+                    continue
+                if clip_filter is not None and not clip_filter(clip):
                     continue
                 rp, q = cache.clip(i)
                 if rp.shape[0] < need:
@@ -49,6 +52,7 @@ class SegmentDataset:
                 starts.append(offset)
                 lens.append(rp.shape[0])
                 names.append(clip["key"])
+                labels.append(clip.get("labels", {}))
                 offset += rp.shape[0]
         if not roots:
             raise ValueError(f"no clip of at least {need} frames in split {self.cfg.split!r}; import more motion")
@@ -57,8 +61,10 @@ class SegmentDataset:
         self.clip_start = torch.tensor(starts)
         self.clip_len = torch.tensor(lens)
         self.clip_names = names
-        # every valid window start, weighted uniformly over frames
+        self.clip_labels = labels
+        # every valid window start, weighted uniformly over frames, and the clip it belongs to
         self.window_starts = torch.cat([torch.arange(s, s + n - need + 1) for s, n in zip(starts, lens)])
+        self.window_clip = torch.cat([torch.full((n - need + 1,), k) for k, n in enumerate(lens)])
 
     def __len__(self) -> int:
         return len(self.window_starts)
@@ -69,8 +75,13 @@ class SegmentDataset:
 
     def sample(self, batch: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(states (B, 1+N, 267) canonical, shapes (B, SHAPE_DIM)), random windows."""
+        return self.sample_indexed(batch, generator)[:2]
+
+    def sample_indexed(self, batch: int, generator: torch.Generator | None = None):
+        """Like sample, plus the index of each window's clip (for its labels)."""
         idx = torch.randint(len(self.window_starts), (batch,), generator=generator)
-        return self.windows(self.window_starts[idx], generator)
+        x, shapes = self.windows(self.window_starts[idx], generator)
+        return x, shapes, self.window_clip[idx]
 
     def windows(self, starts: torch.Tensor, generator: torch.Generator | None = None,
                 shapes: torch.Tensor | None = None, mirror: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
