@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -61,7 +63,7 @@ def test_targets_and_saving(tmp_path):
     with pytest.raises(ValueError, match="trained on base model"):
         load_adaptor(tmp_path / "a", base_net(), "other")
     r = rescale_target(torch.tensor([[3.0, 4.0]]))
-    assert torch.allclose(r.norm(), torch.tensor(2 * (1 - torch.exp(torch.tensor(-5.0)))))
+    assert abs(float(r.norm()) - 2 * (1 - math.exp(-5.0))) < 1e-6
 
 
 def test_validation():
@@ -93,3 +95,29 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
     if task == "actions":
         assert m.cfg.labels == ["walk", "wave"]
         assert main(args[:-2] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
+
+
+def test_runtime_labels_and_targets(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    ad = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["walk", "wave"])).eval()
+    torch.nn.init.normal_(ad.zero[0].weight, std=0.5)
+    crowd = Crowd(motor, seed=1, adaptor=ad)
+    plain = Crowd(motor, seed=1)
+    i, j = crowd.spawn(), plain.spawn()
+    assert torch.equal(crowd.step_segment()[i], plain.step_segment()[j])  # no label: the base model exactly
+    crowd.set_label(i, "wave")
+    assert not torch.equal(crowd.step_segment()[i], plain.step_segment()[j])
+    with pytest.raises(ValueError, match="unknown label 'dance'"):
+        crowd.set_label(i, "dance")
+    with pytest.raises(ValueError, match="no reaching adaptor"):
+        crowd.set_target(i, (1.0, 2.0))
+    with pytest.raises(ValueError, match="no action adaptor"):
+        plain.set_label(j, "walk")
+    reach = Crowd(motor, adaptor=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
+    k = reach.spawn()
+    reach.set_target(k, (2.0, 1.0))
+    assert reach.step_segment()[k].shape == (15, 267)
+    with pytest.raises(ValueError, match="finite"):
+        reach.set_target(k, (float("nan"), 1.0))

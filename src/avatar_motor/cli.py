@@ -177,6 +177,23 @@ def load_init(spec: str, shape=None):
     return states[frame]
 
 
+def _load_adaptor(a, motor):
+    if not getattr(a, "adaptor", None):
+        return None
+    from .model.adaptor import load_adaptor
+    return load_adaptor(a.adaptor, motor.net, motor.name)
+
+
+def _parse_xz(text: str):
+    if text.lower() in ("none", "free"):
+        return None
+    try:
+        x, z = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--target {text!r} must be X,Z in metres (e.g. 2,1.5) or 'free'") from None
+    return (x, z)
+
+
 def _generate(a) -> int:
     import torch
 
@@ -194,9 +211,11 @@ def _generate(a) -> int:
     out = Path(a.out)
     if out.suffix.lower() not in (".bvh", ".glb", ".npz"):
         raise ValueError(f"--out {out}: use a .bvh, .glb or .npz file name")
+    labels = _timed_args(a.label, "--label", lambda v: None if v.lower() in ("none", "free") else v)
+    targets = _timed_args(a.target, "--target", _parse_xz)
     motor = load_checkpoint(a.model)
     init = load_init(a.init) if a.init else None
-    crowd = Crowd(motor, _runtime_config(a), a.seed)
+    crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptor(a, motor))
     i = crowd.spawn(init)
     frames = [crowd.avatars[i].state]
     n = int(round(a.seconds * 30))
@@ -206,6 +225,10 @@ def _generate(a) -> int:
             crowd.set_goal(i, goals.pop(0)[1])
         while impulses and impulses[0][0] <= t:
             crowd.impulse(i, impulses.pop(0)[1])
+        while labels and labels[0][0] <= t:
+            crowd.set_label(i, labels.pop(0)[1], a.label_scale)
+        while targets and targets[0][0] <= t:
+            crowd.set_target(i, targets.pop(0)[1])
         frames.append(crowd.next_frames()[i])
     X = torch.stack(frames)
     write_motion(out, X, meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
@@ -222,7 +245,7 @@ def _serve(a) -> int:
     motor = load_checkpoint(a.model)
     if a.threads:
         torch.set_num_threads(a.threads)
-    world = World(motor, _runtime_config(a), a.seed)
+    world = World(motor, _runtime_config(a), a.seed, adaptor=_load_adaptor(a, motor))
     if not 0 <= a.avatars <= 64:
         raise ValueError("--avatars must be 0..64")
     for k in range(a.avatars):
@@ -378,6 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--seed", type=int, default=0)
     sv.add_argument("--steps", type=int, help="denoising steps per segment")
     sv.add_argument("--threads", type=int, help="torch threads for generation")
+    sv.add_argument("--adaptor", help="adaptor folder (action labels or reaching targets)")
     sv.add_argument("--open-browser", action="store_true")
     sv.add_argument("--headless", action="store_true", help="no server: replay --script on a virtual clock")
     sv.add_argument("--script", help="events JSON (from the studio's 'save events' or /api/events)")
@@ -393,6 +417,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--impulse", action="append", help="NAME@SECONDS, e.g. left_kick@2 (repeatable)")
     g.add_argument("--goal", action="append", help="VX,VZ[@SECONDS] world m/s, or free[@SECONDS] (repeatable)")
     g.add_argument("--steps", type=int, help="denoising steps per segment")
+    g.add_argument("--adaptor", help="adaptor folder from 'avatar-motor adapt' (labels or targets)")
+    g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
+    g.add_argument("--label-scale", type=float, default=1.0, help="adaptor strength (0 = base model)")
+    g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
     g.add_argument("--no-processing", action="store_true")
     g.add_argument("--out", required=True)
     g.set_defaults(func=_generate)

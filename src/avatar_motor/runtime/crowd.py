@@ -63,6 +63,9 @@ class AvatarState:
     v_goal: torch.Tensor | None = None  # (3,) world m/s
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
+    label: int | None = None  # action label index of the adaptor
+    label_scale: float = 1.0
+    target: torch.Tensor | None = None  # (2,) world x, z for a reaching adaptor
     epoch: int = 0  # bumped by every interruption
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
 
@@ -91,8 +94,10 @@ def validate_vector(v, n: int, what: str) -> torch.Tensor:
 
 
 class Crowd:
-    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0):
+    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0, adaptor=None):
+        """adaptor: an AdaptedDenoiser on motor's network (labels or targets), or None."""
         self.motor = motor
+        self.adaptor = adaptor
         self.cfg = config or RuntimeConfig()
         self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
@@ -140,6 +145,34 @@ class Crowd:
             f = validate_vector(facing, 2, "facing (fx, fz)") if facing is not None else v
             n = float(f.norm())
             a.facing_goal = torch.tensor([f[0] / n, 0.0, f[1] / n]) if n > 1e-6 else None
+        self.interrupt(i)
+
+    def set_label(self, i: int, label: str | None, scale: float = 1.0) -> None:
+        """Action label of the adaptor (None releases); scale 0 = base model, 1 = as trained."""
+        a = self._get(i)
+        if label is None:
+            a.label = None
+        else:
+            if self.adaptor is None or self.adaptor.cfg.control != "label":
+                raise ValueError("no action adaptor loaded: labels need one (avatar-motor adapt actions, then --adaptor DIR)")
+            labels = self.adaptor.cfg.labels
+            if label not in labels:
+                raise ValueError(f"unknown label {label!r}; this adaptor knows {labels}")
+            if not (math.isfinite(scale) and 0 <= scale <= 10):
+                raise ValueError("label scale must be in [0, 10]")
+            a.label, a.label_scale = labels.index(label), float(scale)
+        self.interrupt(i)
+
+    def set_target(self, i: int, position) -> None:
+        """World (x, z) target of a reaching adaptor (None releases); re-expressed in every
+        segment's canonical frame, so a moving target is followed."""
+        a = self._get(i)
+        if position is None:
+            a.target = None
+        else:
+            if self.adaptor is None or self.adaptor.cfg.control != "target":
+                raise ValueError("no reaching adaptor loaded (avatar-motor adapt reach, then --adaptor DIR)")
+            a.target = validate_vector(position, 2, "target (x, z)")
         self.interrupt(i)
 
     def impulse(self, i: int, preset: str, scale: float = 1.0) -> None:
@@ -219,6 +252,8 @@ class Crowd:
                 a.pending_velocity = None
         return {"avatars": [a.id for a in avs], "epochs": [a.epoch for a in avs], "x0": x0,
                 "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
+                "labels": [a.label for a in avs], "label_scales": [a.label_scale for a in avs],
+                "targets": [a.target for a in avs],
                 "v_goal": [a.v_goal for a in avs], "facing_goal": [a.facing_goal for a in avs]}
 
     @torch.inference_mode()
@@ -242,8 +277,7 @@ class Crowd:
         cond = norm.encode(x0c.float())
         guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float(), x0c.float())
         B, N = len(x0), self.frames_per_segment
-        seg_n = motor.diffusion.sample(lambda x_t, t: motor.net(t, x_t, cond), (B, N, STATE_DIM), cfg.steps,
-                                       job["gens"], guide, cfg.eta)
+        seg_n = motor.diffusion.sample(self._denoiser(job, tf, cond), (B, N, STATE_DIM), cfg.steps, job["gens"], guide, cfg.eta)
         t2 = time.perf_counter()
         seg = norm.decode(seg_n).double()
         if cfg.smooth_sigma > 0:
@@ -257,6 +291,26 @@ class Crowd:
         t3 = time.perf_counter()
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": B}
         return seg_w
+
+    def _denoiser(self, job, tf, cond):
+        """The base network, or the adaptor with per-avatar controls (scale 0 where none is set,
+        which is the base model exactly)."""
+        net, ad = self.motor.net, self.adaptor
+        if ad is None or all(lb is None for lb in job["labels"]) and all(t is None for t in job["targets"]):
+            return lambda x_t, t: net(t, x_t, cond)
+        if ad.cfg.control == "label":
+            y = torch.tensor([lb if lb is not None else ad.null_label for lb in job["labels"]])
+            scale = torch.tensor([s if lb is not None else 0.0 for lb, s in zip(job["labels"], job["label_scales"])])
+        else:
+            Rt = tf.R.transpose(-1, -2).float()
+            y = torch.zeros(len(job["targets"]), 2)
+            for k, tg in enumerate(job["targets"]):
+                if tg is not None:
+                    local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
+                    y[k] = local[[0, 2]]
+            scale = torch.tensor([1.0 if tg is not None else 0.0 for tg in job["targets"]])
+        s = scale[:, None, None]
+        return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
 
     def commit(self, job, seg_w: torch.Tensor) -> None:
         """Append generated frames, unless a command interrupted the avatar meanwhile."""

@@ -41,9 +41,11 @@ class World:
     seed: int = 0
     record_seconds: float = 60.0
 
+    adaptor: object = None  # an AdaptedDenoiser for labels or targets
+
     def __post_init__(self):
         self.lock = threading.RLock()
-        self.crowd = Crowd(self.motor, self.config, self.seed)
+        self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptor)
         self.frame = 0
         self.targets: dict[int, Target] = {}
         self.history: dict[int, deque] = {}
@@ -104,6 +106,10 @@ class World:
     def _cmd_target(self, cmd):
         i = self._avatar(cmd)
         pos = cmd.get("position")
+        ad = self.crowd.adaptor
+        if ad is not None and ad.cfg.control == "target":  # a reaching adaptor walks there by itself
+            self.crowd.set_target(i, pos)
+            return
         if pos is None:
             self.targets.pop(i, None)
             self.crowd.set_goal(i, None)
@@ -112,7 +118,11 @@ class World:
         self._steer_to_target(i)
 
     def _cmd_label(self, cmd):
-        raise CommandError("this model has no action adaptor; labels need an adapted model (not yet available)")
+        i = self._avatar(cmd)
+        try:
+            self.crowd.set_label(i, cmd["label"], float(cmd.get("scale", 1.0)))
+        except ValueError as e:
+            raise CommandError(str(e)) from None
 
     def _cmd_reset(self, cmd):
         """Stand the avatar(s) up where they are, controls released."""

@@ -92,7 +92,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         opt.step()
-        log.append(float(losses["loss"]))
+        log.append(float(losses["loss"].detach()))
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
     info = {"task": cfg.task, "steps": cfg.steps, "seconds": time.time() - t0, "windows": len(ds),
