@@ -121,3 +121,27 @@ def test_runtime_labels_and_targets(tmp_path):
     assert reach.step_segment()[k].shape == (15, 267)
     with pytest.raises(ValueError, match="finite"):
         reach.set_target(k, (float("nan"), 1.0))
+
+
+def test_adaptation_evals_run_on_tiny_models(tmp_path):
+    from avatar_motor.data.cache import MotionCache, import_motion
+    from avatar_motor.data.dataset import SegmentConfig, SegmentDataset
+    from avatar_motor.eval.adaptation import eval_actions, eval_reach, train_encoder
+    from .conftest_models import tiny_motor
+    from .fixture_tools import FIXTURES
+    import shutil
+    motor = tiny_motor(tmp_path)
+    src = tmp_path / "clips"
+    src.mkdir()
+    for k, (name, content) in enumerate((("walk_lafan1", "walk"), ("walk_cmu", "wave"))):
+        shutil.copy(FIXTURES / f"{name}.bvh", src / f"dataset-9_{content}_normal_00{k}.bvh")
+    path, _ = import_motion(src, name="labelled", progress=False, workers=1)
+    ds = SegmentDataset([MotionCache.load(path)], SegmentConfig(frames=30, split="all"))
+    enc = train_encoder(ds, "content", ["walk", "wave"], seconds=1.0, steps=5)
+    init, shapes = ds.sample(2, torch.Generator().manual_seed(0))
+    ad = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["walk", "wave"])).eval()
+    rows = eval_actions(motor, {"ours": ad}, enc, init[:, 0], shapes, ["walk", "wave"], seconds=1.0)
+    assert rows[0]["method"] == "ours" and 0 <= rows[0]["R_precision"] <= 1
+    reach = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
+    rows = eval_reach(motor, {"ours": reach}, init[:, 0], shapes, seconds=0.5)
+    assert rows[0]["min_dist_m"] > 0

@@ -339,9 +339,50 @@ def _adapt(a) -> int:
 
     cfg = AdaptConfig(base=a.model, data=a.data or ["dataset-1"], out=a.out, task=a.task, kind=a.kind,
                       label_key=a.label_key, classes=[c for c in (a.classes or "").split(",") if c],
-                      steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split)
+                      steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split, scratch=a.scratch)
     path = adapt(cfg)
     print(f"adaptor written to {path}")
+    return 0
+
+
+def _named_adaptors(specs: list[str], motor):
+    """NAME=DIR items -> {name: AdaptedDenoiser}; the name 'base' (no dir) is the base model."""
+    from .model.adaptor import load_adaptor
+
+    out = {}
+    for spec in specs:
+        name, _, path = spec.partition("=")
+        if not path:
+            raise ValueError(f"--adaptors {spec!r}: write NAME=FOLDER, e.g. ours=runs/adapt/adaptor")
+        out[name] = load_adaptor(path, motor.net, motor.name)
+    return out
+
+
+def _eval_adaptation(a) -> int:
+    from .eval.adaptation import eval_actions, eval_reach, format_rows, heldout_initial_states, train_encoder
+    from .model.checkpoint import load_checkpoint
+
+    motor = load_checkpoint(a.model)
+    ads = _named_adaptors(a.adaptors, motor)
+    caches = _caches(a.data)
+    init, shapes = heldout_initial_states(caches, a.n, a.seed)
+    if a.ecmd == "reach":
+        rows = eval_reach(motor, ads, init, shapes, a.seconds or 2.0, a.seed, _runtime_config(a))
+        print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s",
+                          rows, ["min_dist_m", "ASR", "ANCR"]))
+        return 0
+    from .data.dataset import SegmentConfig, SegmentDataset
+    classes = sorted({tuple(ad.cfg.labels) for ad in ads.values()})
+    if len(classes) != 1:
+        raise ValueError("the adaptors were trained on different label sets; compare adaptors of one dataset")
+    classes = list(classes[0])
+    key = a.label_key
+    ds = SegmentDataset(caches, SegmentConfig(frames=int(3 * 30), split="all"),
+                        clip_filter=lambda c: c["labels"].get(key) in classes)
+    enc = train_encoder(ds, key, classes, steps=a.encoder_steps, seed=a.seed, progress=print)
+    rows = eval_actions(motor, ads, enc, init, shapes, classes, a.seconds or 3.0, a.seed, _runtime_config(a))
+    print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {a.seconds or 3.0:g} s",
+                      rows, ["R_precision", "ASR", "ANCR"]))
     return 0
 
 
@@ -389,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--batch", type=int)
     ad.add_argument("--seed", type=int, default=0)
     ad.add_argument("--out", default="runs/adapt")
+    ad.add_argument("--scratch", action="store_true", help="baseline: train a fresh network (with --kind finetune)")
     ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
     ad.set_defaults(func=_adapt)
 
@@ -449,6 +491,19 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--seed", type=int, default=0)
         e.add_argument("--data", nargs="*")
         e.set_defaults(func=fn)
+    for name, helptext in (("actions", "R-precision, ASR, ANCR of action adaptors (Table A3)"),
+                           ("reach", "minimal pelvis distance to 8 targets (Table A4)")):
+        e = ev.add_parser(name, help=helptext)
+        e.add_argument("--model", default=str(DEFAULT_MODEL))
+        e.add_argument("--adaptors", nargs="+", required=True, help="NAME=FOLDER for each method to compare")
+        e.add_argument("--data", nargs="*", help="motion caches the adaptors were trained on (default: dataset-1 dataset-2)")
+        e.add_argument("--label-key", default="content")
+        e.add_argument("--encoder-steps", type=int, default=1500)
+        e.add_argument("--n", type=int, default=45)
+        e.add_argument("--seconds", type=float)
+        e.add_argument("--steps", type=int)
+        e.add_argument("--seed", type=int, default=0)
+        e.set_defaults(func=_eval_adaptation)
     b = sub.add_parser("bench", help="per-segment timings (Table A6), crowd throughput, reaction latency")
     b.add_argument("--model", default=str(DEFAULT_MODEL))
     b.add_argument("--segments", type=int, default=10)

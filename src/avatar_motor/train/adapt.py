@@ -36,6 +36,7 @@ class AdaptConfig:
     fkv_weight: float = 0.2
     seed: int = 0
     split: str = "train"
+    scratch: bool = False  # PRIMAL's "scratch training" baseline: a fresh network, trained like finetune
 
 
 def target_of(x: torch.Tensor) -> torch.Tensor:
@@ -51,6 +52,11 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         raise ValueError(f"task must be 'actions' or 'reach', got {cfg.task!r}")
     torch.manual_seed(cfg.seed)
     motor = load_checkpoint(cfg.base)
+    if cfg.scratch:
+        if cfg.kind != "finetune":
+            raise ValueError("--scratch trains the whole network: use it with --kind finetune")
+        from ..model.denoiser import Denoiser
+        motor.net = Denoiser(motor.net.cfg)  # same architecture and normalisation, fresh weights
     caches = [MotionCache.load(p) for p in resolve_caches(cfg.data)]
     keep = None
     if cfg.task == "actions":

@@ -1,0 +1,152 @@
+"""Evaluation of adaptation (supplementary §9.3, Tables A3 and A4).
+
+- A contrastive motion/label encoder (§9.3.1: transformer, 4 blocks, 256 wide, 8 heads; the
+  label encoder is one embedding layer) trained on the adaptation data; top-1 R-precision is the
+  fraction of generated motions whose nearest label embedding is the commanded label.
+- `eval actions`: 3-s rollouts per label from held-out initial states, for every adaptor given.
+- `eval reach`: 2-s rollouts to targets at (+-1.5, 0), (0, +-1.5), (+-1, 0), (0, +-1) m relative to
+  the initial pelvis (in its body frame); minimal pelvis distance to the target.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..data.dataset import SegmentConfig, SegmentDataset
+from ..data.motion_state import FPS, SLICES, canonicalize, joints_of
+from ..model.checkpoint import Motor
+from ..runtime.crowd import Crowd, RuntimeConfig
+from . import metrics as M
+
+TARGETS = [(1.5, 0.0), (-1.5, 0.0), (0.0, 1.5), (0.0, -1.5), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)]
+
+
+class MotionEncoder(nn.Module):
+    """Canonical joint positions (B, T, 66) -> unit embedding (B, width)."""
+
+    def __init__(self, frames: int, width: int = 256, depth: int = 4, heads: int = 8):
+        super().__init__()
+        self.inp = nn.Linear(66, width)
+        self.pos = nn.Parameter(torch.randn(1, frames + 1, width) * 0.02)
+        self.cls = nn.Parameter(torch.zeros(1, 1, width))
+        layer = nn.TransformerEncoderLayer(width, heads, 4 * width, dropout=0.1, batch_first=True, norm_first=True)
+        self.enc = nn.TransformerEncoder(layer, depth)
+        self.out = nn.Linear(width, width)
+
+    def forward(self, J: torch.Tensor) -> torch.Tensor:
+        h = torch.cat((self.cls.expand(len(J), -1, -1), self.inp(J)), 1) + self.pos[:, : J.shape[1] + 1]
+        return F.normalize(self.out(self.enc(h)[:, 0]), dim=-1)
+
+
+class LabelEncoder(nn.Module):
+    def __init__(self, n: int, width: int = 256):
+        super().__init__()
+        self.embed = nn.Embedding(n, width)
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        return F.normalize(self.embed(y), dim=-1)
+
+
+def canonical_joints(X: torch.Tensor) -> torch.Tensor:
+    """World states (B, T, 267) -> joint positions (B, T, 66) in the first frame's canonical frame."""
+    xc, _ = canonicalize(X.double())
+    return xc[..., SLICES["joints"]].float()
+
+
+def train_encoder(ds: SegmentDataset, label_key: str, classes: list[str], seconds: float = 3.0, steps: int = 1500,
+                  seed: int = 0, progress=None) -> tuple[MotionEncoder, LabelEncoder]:
+    """Contrastive training (CLIP-style, temperature 0.07) on windows of the labelled data."""
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    T = int(seconds * FPS)
+    if ds.cfg.frames + 1 < T:
+        raise ValueError(f"the dataset's windows ({ds.cfg.frames + 1} frames) are shorter than {T}")
+    menc, lenc = MotionEncoder(T), LabelEncoder(len(classes))
+    opt = torch.optim.AdamW(list(menc.parameters()) + list(lenc.parameters()), lr=3e-4)
+    index = {c: k for k, c in enumerate(classes)}
+    for step in range(steps):
+        x, _, clip = ds.sample_indexed(64, g)
+        y = torch.tensor([index[ds.clip_labels[int(k)][label_key]] for k in clip])
+        logits = menc(x[:, :T, SLICES["joints"]]) @ lenc(torch.arange(len(classes))).T / 0.07
+        loss = F.cross_entropy(logits, y)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if progress and (step + 1) % 250 == 0:
+            progress(f"encoder step {step + 1}: loss {float(loss):.3f}")
+    return menc.eval(), lenc.eval()
+
+
+@torch.no_grad()
+def r_precision(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, y: torch.Tensor) -> float:
+    T = menc.pos.shape[1] - 1
+    emb = menc(canonical_joints(X)[:, :T])
+    pred = (emb @ lenc(torch.arange(lenc.embed.num_embeddings)).T).argmax(-1)
+    return float((pred == y).float().mean())
+
+
+def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int, cfg: RuntimeConfig) -> torch.Tensor:
+    crowd = Crowd(motor, cfg, seed, adaptor)
+    ids = [crowd.spawn(init[k], shapes[k]) for k in range(len(init))]
+    for k, i in enumerate(ids):
+        setup(crowd, i, k)
+    segs = [init[:, None]]
+    while sum(s.shape[1] for s in segs) < frames + 1:
+        out = crowd.step_segment()
+        segs.append(torch.stack([out[i] for i in ids]))
+    return torch.cat(segs, 1)[:, : frames + 1]
+
+
+def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: list[str], seconds: float = 3.0,
+                 seed: int = 0, cfg: RuntimeConfig | None = None) -> list[dict]:
+    cfg = cfg or RuntimeConfig()
+    menc, lenc = encoder
+    rows = []
+    for name, ad in adaptors.items():
+        Xs, ys = [], []
+        for c, label in enumerate(classes):
+            X = _rollout(motor, ad, init, shapes, int(seconds * FPS),
+                         lambda crowd, i, k, label=label: crowd.set_label(i, label), seed, cfg)
+            Xs.append(X)
+            ys.append(torch.full((len(X),), c))
+        X, y = torch.cat(Xs), torch.cat(ys)
+        rows.append({"method": name, "R_precision": r_precision(menc, lenc, X, y), "ASR": M.asr(joints_of(X)),
+                     "ANCR": M.ancr(joints_of(X))})
+    return rows
+
+
+def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0, seed: int = 0,
+               cfg: RuntimeConfig | None = None) -> list[dict]:
+    from ..data.motion_state import canonical_transform
+    cfg = cfg or RuntimeConfig()
+    tf = canonical_transform(init.double())
+    rows = []
+    for name, ad in adaptors.items():
+        dists, Js = [], []
+        for tx, tz in TARGETS:
+            world = (tf.R.float() @ torch.tensor([tx, 0.0, tz]) + tf.t.float())[:, [0, 2]]  # (n, 2)
+            X = _rollout(motor, ad, init, shapes, int(seconds * FPS),
+                         lambda crowd, i, k, world=world: crowd.set_target(i, world[k].tolist()), seed, cfg)
+            J = joints_of(X)
+            d = (J[:, :, 0, [0, 2]] - world[:, None]).norm(dim=-1).amin(1)
+            dists.append(d)
+            Js.append(J)
+        J = torch.cat(Js)
+        rows.append({"method": name, "min_dist_m": float(torch.cat(dists).mean()), "ASR": M.asr(J), "ANCR": M.ancr(J)})
+    return rows
+
+
+def format_rows(title: str, rows: list[dict], keys: list[str]) -> str:
+    out = [title, f"{'method':14s} " + " ".join(f"{k:>12s}" for k in keys)]
+    for r in rows:
+        out.append(f"{r['method']:14s} " + " ".join(f"{r[k]:12.3f}" if not math.isnan(r[k]) else f"{'nan':>12s}" for k in keys))
+    return "\n".join(out)
+
+
+def heldout_initial_states(caches, n: int, seed: int):
+    ds = SegmentDataset(caches, SegmentConfig(split="heldout", mirror=False))
+    x, shapes = ds.sample(n, torch.Generator().manual_seed(seed))
+    return x[:, 0], shapes
