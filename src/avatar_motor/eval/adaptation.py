@@ -18,8 +18,9 @@ from torch import nn
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..data.motion_state import FPS, SLICES, canonicalize, joints_of
 from ..model.checkpoint import Motor
-from ..runtime.crowd import Crowd, RuntimeConfig
+from ..runtime.crowd import RuntimeConfig
 from . import metrics as M
+from .realism import rollout
 
 TARGETS = [(1.5, 0.0), (-1.5, 0.0), (0.0, 1.5), (0.0, -1.5), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)]
 
@@ -89,15 +90,12 @@ def r_precision(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, y: tor
 
 
 def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int, cfg: RuntimeConfig) -> torch.Tensor:
-    crowd = Crowd(motor, cfg, seed, adaptor)
-    ids = [crowd.spawn(init[k], shapes[k]) for k in range(len(init))]
-    for k, i in enumerate(ids):
-        setup(crowd, i, k)
-    segs = [init[:, None]]
-    while sum(s.shape[1] for s in segs) < frames + 1:
-        out = crowd.step_segment()
-        segs.append(torch.stack([out[i] for i in ids]))
-    return torch.cat(segs, 1)[:, : frames + 1]
+    """A rollout whose avatar k gets setup(crowd, avatar id, k) before the first segment."""
+    def controls(crowd, seg):
+        if seg == 0:
+            for k, i in enumerate(sorted(crowd.avatars)):
+                setup(crowd, i, k)
+    return rollout(motor, init, shapes, frames, cfg, seed, controls, adaptor)
 
 
 def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: list[str], seconds: float = 3.0,

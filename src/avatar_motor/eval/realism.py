@@ -52,10 +52,10 @@ class RealData:
 
 
 def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int, cfg: RuntimeConfig, seed: int,
-            controls=None) -> torch.Tensor:
+            controls=None, adaptor=None) -> torch.Tensor:
     """Batched autoregressive rollout: (B, 1 + frames, 267) world states, init first.
-    controls(crowd, segment_index) may set goals/impulses before each segment."""
-    crowd = Crowd(motor, cfg, seed)
+    controls(crowd, segment_index) may set goals/impulses/labels before each segment."""
+    crowd = Crowd(motor, cfg, seed, adaptor)
     ids = [crowd.spawn(init[k], shapes[k]) for k in range(len(init))]
     segs = [init[:, None].float()]
     n = 0
