@@ -189,3 +189,16 @@ def test_smoothing_removes_frame_noise_and_keeps_the_join():
     assert (joints_of(out) - joints_of(seg)).abs().mean() < 0.01  # the motion itself is kept
     assert torch.allclose(velocities_of(out)[:, 0], (joints_of(out)[:, 0] - joints_of(x0)) * FPS)
     assert torch.equal(smooth_segment(x0, noisy, 0.0), noisy)
+
+
+def test_mirrored_rotations_give_mirrored_joints():
+    from avatar_motor.body.skeleton import MIRROR
+    from avatar_motor.eval.metrics import mirror_local_rotations
+    x = walk_states()[0]
+    u = unpack(x)
+    off = rest_offsets(None, torch.float64)
+    Mx = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+    J, _ = forward_kinematics(u.root_pos * torch.tensor([-1.0, 1, 1], dtype=torch.float64), Mx @ u.root_rot @ Mx,
+                              mirror_local_rotations(u.local_rot), off)
+    assert torch.allclose(J[..., 0], -u.joints[:, MIRROR, 0], atol=1e-6)
+    assert torch.allclose(J[..., 1:], u.joints[:, MIRROR, 1:], atol=1e-6)

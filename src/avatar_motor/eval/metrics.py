@@ -61,6 +61,14 @@ def frozen(J: torch.Tensor, seconds: float = 3.0, threshold: float = 0.005) -> t
     return runs.amax(-1) > 0
 
 
+def mirror_local_rotations(R: torch.Tensor) -> torch.Tensor:
+    """Local rotations (..., 21, 3, 3) of the left/right mirrored pose (the augmentation the
+    model trains with): M R M with M = diag(-1, 1, 1), left and right joints swapped."""
+    from ..body.skeleton import MIRROR
+    M_ = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=R.dtype))
+    return (M_ @ R @ M_)[..., [MIRROR[j + 1] - 1 for j in range(21)], :, :]
+
+
 def pose_features(local_rot: torch.Tensor) -> torch.Tensor:
     """(..., 21, 3, 3) -> (..., 189): flattened joint rotations (chordal distance space)."""
     return local_rot.reshape(*local_rot.shape[:-3], -1)

@@ -83,9 +83,13 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     real = RealData.load(caches)
     Jr = real.windows(seconds)
     # pose naturalness: nearest real pose, generated vs real (disjoint halves of the held-out poses)
-    real_poses = torch.cat([M.pose_features(R) for R in real.local_rot])
-    perm = torch.randperm(len(real_poses), generator=g)
-    ref, real_q = real_poses[perm[: len(perm) // 2]][:20000], real_poses[perm[len(perm) // 2:]][:4000]
+    # the reference holds the held-out poses and their mirror images (the model is trained with
+    # mirroring, and a mirrored pose is a real pose); queries of real poses come from the other half
+    real_rot = torch.cat(real.local_rot)
+    perm = torch.randperm(len(real_rot), generator=g)
+    ref_rot = real_rot[perm[: len(perm) // 2]][:10000]
+    ref = M.pose_features(torch.cat((ref_rot, M.mirror_local_rotations(ref_rot))))
+    real_q = M.pose_features(real_rot[perm[len(perm) // 2:]][:4000])
     gen_poses = M.pose_features(unpack(X[:, 1:].reshape(-1, X.shape[-1])).local_rot)
     gen_poses = gen_poses[torch.randperm(len(gen_poses), generator=g)[:4000]]
     d_gen = float(M.nn_pose_distance(gen_poses, ref).mean())
