@@ -164,7 +164,7 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
         ("50 steps", plain50, False),
         ("50 steps + proc.", RuntimeConfig(steps=50), False),
         ("50 steps + proc. + CBG", RuntimeConfig(steps=50), True),
-        ("10 steps + proc.", RuntimeConfig(steps=10), False),
+        ("10 steps + proc. + CBG", RuntimeConfig(steps=10), True),
         (f"{default.steps} steps + proc. + CBG (default)", default, True),
     ]
     rows = []

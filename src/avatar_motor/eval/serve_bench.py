@@ -41,8 +41,8 @@ def _start(model: str, avatars: int) -> tuple[subprocess.Popen, str]:
 
 
 def reaction_latency(url: str, trials: int = 10) -> list[float]:
-    """Send a push of 3 m/s on the pelvis sideways and time until a received frame shows the
-    pelvis leaving its course by more than 2 cm (relative to constant-velocity extrapolation)."""
+    """Send the forward_run impulse and time until a received frame shows the pelvis leaving its
+    course by more than 2 cm (relative to constant-velocity extrapolation of the last frames)."""
     from ..client import Client
 
     out = []
@@ -51,17 +51,17 @@ def reaction_latency(url: str, trials: int = 10) -> list[float]:
             c.drain()
             hist = [f["avatars"][0]["positions"][0].copy() for f in c.frames(6)]
             c.drain()
-            side = 1.0 if k % 2 == 0 else -1.0
             t0 = time.perf_counter()
-            c.command({"type": "push", "avatar": 0, "joint": "pelvis", "velocity": [3.0 * side, 0.0, 0.0]}, wait=False)
+            c.command({"type": "impulse", "avatar": 0, "preset": "forward_run"}, wait=False)
             last, prev = hist[-1], hist[-2]
             for f in c.frames(30):
                 p = f["avatars"][0]["positions"][0]
                 expect = last + (last - prev)
-                if abs(float(p[0] - expect[0])) > 0.02:
+                if float(np.linalg.norm((p - expect)[[0, 2]])) > 0.02:
                     out.append(time.perf_counter() - t0)
                     break
                 prev, last = last, p
+            c.command({"type": "reset", "avatar": 0})
             time.sleep(1.0)
     return out
 
