@@ -34,7 +34,7 @@ class MotionEncoder(nn.Module):
         self.pos = nn.Parameter(torch.randn(1, frames + 1, width) * 0.02)
         self.cls = nn.Parameter(torch.zeros(1, 1, width))
         layer = nn.TransformerEncoderLayer(width, heads, 4 * width, dropout=0.1, batch_first=True, norm_first=True)
-        self.enc = nn.TransformerEncoder(layer, depth)
+        self.enc = nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
         self.out = nn.Linear(width, width)
 
     def forward(self, J: torch.Tensor) -> torch.Tensor:
