@@ -189,6 +189,8 @@ class Server:
     async def _start_background(self, app):
         self.running = True
         self.initial_avatars = len(self.world.crowd.avatars)
+        # fill the queues before the clock starts, so the first ticks do not stall
+        await asyncio.get_running_loop().run_in_executor(None, self._prefill)
         self.worker = threading.Thread(target=self._generation_worker, daemon=True, name="generation")
         self.worker.start()
         self.clock = asyncio.create_task(self._clock())
@@ -197,6 +199,10 @@ class Server:
         self.running = False
         self.clock.cancel()
         self.worker.join(timeout=5)
+
+    def _prefill(self) -> None:
+        while self.world.needs_generation():
+            self.world.generate()
 
     def _generation_worker(self) -> None:
         while self.running:
