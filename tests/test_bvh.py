@@ -1,4 +1,3 @@
-import io
 import tarfile
 import zipfile
 from pathlib import Path
@@ -7,7 +6,7 @@ import numpy as np
 import pytest
 
 from avatar_motor.data.cache import MotionCache, default_cache_dir, import_motion
-from avatar_motor.io.bvh import BVHError, format_bvh, parse_bvh, read_bvh, write_bvh
+from avatar_motor.io.bvh import BVHError, parse_bvh, read_bvh, write_bvh
 
 FIX = Path(__file__).parent / "fixtures"
 

@@ -24,7 +24,7 @@ def test_cosine_schedule_against_independent_formulas():
     betas = [min(1 - f[t + 1] / f[t], 0.999) for t in range(T)]
     assert torch.allclose(cosine_betas(T), torch.tensor(betas, dtype=torch.float64), atol=1e-12)
     d = Diffusion(T)
-    ab, prev = 1.0, 1.0
+    ab = 1.0
     for t in range(T):
         ab_prev, ab = ab, ab * (1 - betas[t])
         s = d.train

@@ -1,4 +1,3 @@
-import numpy as np
 import pytest
 import torch
 
@@ -8,8 +7,6 @@ from avatar_motor.data.cache import MotionCache
 from avatar_motor.data.dataset import Normalizer, SegmentConfig, SegmentDataset
 from avatar_motor.data.motion_state import (STATE_DIM, canonicalize, facing_yaw, joints_of, pack, states_from_motion,
                                             to_world, unpack, velocities_of)
-from avatar_motor.data.retarget import retarget
-from avatar_motor.io.bvh import read_bvh
 
 from .fixture_tools import FIXTURES
 

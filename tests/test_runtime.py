@@ -5,7 +5,7 @@ import torch
 
 from avatar_motor.body.skeleton import FOOT_CLEARANCE, SHAPE_DIM, forward_kinematics, rest_offsets
 from avatar_motor.data.motion_state import FPS, joints_of, unpack, velocities_of
-from avatar_motor.runtime.crowd import IMPULSE_PRESETS, Avatar, Crowd, RuntimeConfig, standing_state
+from avatar_motor.runtime.crowd import IMPULSE_PRESETS, Avatar, Crowd, standing_state
 from avatar_motor.runtime.guidance import facing_loss_and_grad, move_loss_and_grad
 from avatar_motor.runtime.processing import inertialize, reproject, snap_to_ground
 
@@ -162,7 +162,6 @@ def test_generate_files_reimport(motor, tmp_path, ext):
     if ext == "bvh":
         from avatar_motor.data.retarget import retarget
         from avatar_motor.io.bvh import read_bvh
-        from avatar_motor.body import rotations as rot
         r = retarget(read_bvh(out), ground="keep")
         assert r.info["skeleton"] == "smpl" and r.root_pos.shape == (30, 3)
         from avatar_motor.io.export import read_npz_states  # noqa: F401

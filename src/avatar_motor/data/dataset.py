@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..body import rotations as rot
-from ..body.skeleton import MIRROR, NUM_JOINTS, SHAPE_DIM, forward_kinematics, pelvis_height, random_shapes, rest_offsets
+from ..body.skeleton import MIRROR, SHAPE_DIM, forward_kinematics, pelvis_height, random_shapes, rest_offsets
 from .cache import MotionCache, is_held_out
 from .motion_state import FPS, STATE_DIM, canonicalize, finite_velocities, pack
 

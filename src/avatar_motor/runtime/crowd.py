@@ -17,7 +17,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
-from ..data.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
+from ..data.motion_state import SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, move_loss_and_grad, path_loss_and_grad
 from .processing import inertialize, reproject, smooth_segment, snap_to_ground

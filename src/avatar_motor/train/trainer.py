@@ -21,7 +21,7 @@ import torch.distributed as dist
 from safetensors.torch import load_file, save_file
 
 from ..data.cache import MotionCache, default_cache_dir
-from ..data.dataset import Normalizer, SegmentConfig, SegmentDataset, load_or_compute_stats
+from ..data.dataset import SegmentConfig, SegmentDataset, load_or_compute_stats
 from ..model.checkpoint import save_checkpoint
 from ..model.denoiser import Denoiser, DenoiserConfig
 from ..model.diffusion import Diffusion
