@@ -37,12 +37,10 @@ def _data_import(a) -> int:
 
 def _open_cache(dataset: str | None, clip: str):
     from .data.cache import MotionCache, list_caches
+    from .train.trainer import resolve_caches
 
-    paths = list_caches() if dataset is None else [Path(dataset) if dataset.endswith(".npz") else None]
-    if dataset is not None and paths[0] is None:
-        from .data.cache import default_cache_dir
-        paths = [default_cache_dir() / f"{dataset}.npz"]
-    if not paths or not paths[0].exists():
+    paths = list_caches() if dataset is None else resolve_caches([dataset])
+    if not paths:
         raise FileNotFoundError("no motion cache found; run 'avatar-motor data import PATH' first")
     for p in paths:
         c = MotionCache.load(p)
@@ -50,7 +48,7 @@ def _open_cache(dataset: str | None, clip: str):
             return c, c.find(clip)
         except KeyError:
             continue
-    raise KeyError(f"no clip matching {clip!r} in {[str(p) for p in paths]}; 'avatar-motor data list' shows the clips")
+    raise KeyError(f"no clip matching {clip!r} in {[str(p) for p in paths]}; 'avatar-motor data list --clips' shows the clips")
 
 
 def _data_show(a) -> int:
@@ -359,13 +357,14 @@ def _named_adaptors(specs: list[str], motor):
 
 
 def _eval_adaptation(a) -> int:
-    from .eval.adaptation import eval_actions, eval_reach, format_rows, heldout_initial_states, train_encoder
+    from .eval.adaptation import eval_actions, eval_reach, format_rows, train_encoder
+    from .eval.control import initial_states
     from .model.checkpoint import load_checkpoint
 
     motor = load_checkpoint(a.model)
     ads = _named_adaptors(a.adaptors, motor)
     caches = _caches(a.data)
-    init, shapes = heldout_initial_states(caches, a.n, a.seed)
+    init, shapes, _ = initial_states(caches, a.n, a.seed)
     if a.ecmd == "reach":
         rows = eval_reach(motor, ads, init, shapes, a.seconds or 2.0, a.seed, _runtime_config(a))
         print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s",

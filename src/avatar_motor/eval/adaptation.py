@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..data.dataset import SegmentConfig, SegmentDataset
+from ..data.dataset import SegmentDataset
 from ..data.motion_state import FPS, SLICES, canonicalize, joints_of
 from ..model.checkpoint import Motor
 from ..runtime.crowd import RuntimeConfig
@@ -142,9 +142,3 @@ def format_rows(title: str, rows: list[dict], keys: list[str]) -> str:
     for r in rows:
         out.append(f"{r['method']:14s} " + " ".join(f"{r[k]:12.3f}" if not math.isnan(r[k]) else f"{'nan':>12s}" for k in keys))
     return "\n".join(out)
-
-
-def heldout_initial_states(caches, n: int, seed: int):
-    ds = SegmentDataset(caches, SegmentConfig(split="heldout", mirror=False))
-    x, shapes = ds.sample(n, torch.Generator().manual_seed(seed))
-    return x[:, 0], shapes

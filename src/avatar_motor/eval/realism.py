@@ -46,8 +46,8 @@ class RealData:
         """Non-overlapping windows (W, T, 22, 3) of real motion."""
         T = int(seconds * FPS)
         out = [J[s:s + T] for J in self.joints for s in range(0, len(J) - T + 1, T)]
-        if not out:  # clips shorter than the window: use what there is
-            return torch.nn.utils.rnn.pad_sequence([J[:T] for J in self.joints], batch_first=True)
+        if not out:
+            raise ValueError(f"no held-out clip is {seconds:g} s long; evaluate with fewer --seconds")
         return torch.stack(out)
 
 
