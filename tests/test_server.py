@@ -162,3 +162,19 @@ def test_headless_replay_is_reproducible(tmp_path):
         runs.append(w.recording(0))
         assert [e["frame"] for e in w.events] == [10, 40]
     assert (runs[0] - runs[1]).abs().max() == 0
+
+
+def test_record_and_events_downloads(server):
+    import urllib.request
+    base = f"http://127.0.0.1:{server.port}"
+    for fmt, magic in (("bvh", b"HIERARCHY"), ("glb", b"glTF"), ("npz", b"PK")):
+        with urllib.request.urlopen(f"{base}/api/record?avatar=0&seconds=2&format={fmt}", timeout=30) as r:
+            body = r.read()
+            assert body.startswith(magic) and "attachment" in r.headers["Content-Disposition"]
+    with urllib.request.urlopen(f"{base}/api/events", timeout=10) as r:
+        ev = json.loads(r.read())
+    assert ev["version"] == 1 and isinstance(ev["events"], list)
+    import urllib.error
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(f"{base}/api/record?avatar=0&format=fbx", timeout=10)
+    assert e.value.code == 400
