@@ -113,3 +113,29 @@ def test_unit_detection_from_stature(unit, factor):
     r = retarget(b)
     assert r.info["unit"] == unit
     assert np.allclose(r.root_pos, retarget(read_bvh(FIXTURES / "walk_lafan1.bvh")).root_pos, atol=1e-4)
+
+
+def test_left_handed_file_is_detected_and_mirrored_back():
+    from avatar_motor.body.rotations import euler_to_matrix, matrix_to_euler
+    b = read_bvh(FIXTURES / "walk_lafan1.bvh")  # ZYX rotations, root XYZ position
+    ref = retarget(b)
+    # the same capture written in a left-handed frame: file X axis flipped
+    b.offsets = b.offsets * np.array([-1.0, 1, 1])
+    b.end_sites = {k: v * np.array([-1.0, 1, 1]) for k, v in b.end_sites.items()}
+    m = b.motion.copy()
+    M = torch.diag(torch.tensor([-1.0, 1, 1], dtype=torch.float64))
+    for j, (ch, sl) in enumerate(zip(b.channels, b.channel_slices())):
+        cols = [k for k, c in enumerate(ch) if c.endswith("rotation")]
+        order = "".join(ch[k][0] for k in cols)
+        ang = torch.deg2rad(torch.from_numpy(m[:, sl][:, cols]))
+        mir = torch.rad2deg(matrix_to_euler(M @ euler_to_matrix(ang, order) @ M, order)).numpy()
+        block = m[:, sl]
+        block[:, cols] = mir
+        for k, c in enumerate(ch):
+            if c == "Xposition":
+                block[:, k] *= -1
+        m[:, sl] = block
+    b.motion = m
+    r = retarget(b)
+    assert np.allclose(r.root_pos, ref.root_pos, atol=1e-4)
+    assert np.allclose(np.abs((r.quats * ref.quats).sum(-1)), 1.0, atol=1e-4)
