@@ -85,9 +85,6 @@ class Mapping:
     name: str
     joints: dict[str, tuple[int, ...]]  # canonical joint -> one or two source joint indices
 
-    def describe(self) -> str:
-        return self.name
-
 
 def _resolve(naming: dict, index: dict[str, int]) -> dict[str, tuple[int, ...]] | None:
     out = {}

@@ -28,7 +28,6 @@ class Schedule:
     alphas_cumprod: torch.Tensor
     alphas_cumprod_prev: torch.Tensor
     posterior_variance: torch.Tensor
-    posterior_log_variance: torch.Tensor
     posterior_mean_coef1: torch.Tensor  # multiplies x0
     posterior_mean_coef2: torch.Tensor  # multiplies x_t
 
@@ -37,9 +36,7 @@ class Schedule:
         prev = torch.cat((torch.ones(1, dtype=abar.dtype), abar[:-1]))
         betas = 1 - abar / prev
         var = betas * (1 - prev) / (1 - abar)
-        # log variance clipped at step 0, whose posterior variance is 0
-        logvar = torch.log(torch.cat((var[1:2], var[1:]))) if len(var) > 1 else torch.log(betas)
-        return Schedule(timesteps, betas, abar, prev, var, logvar,
+        return Schedule(timesteps, betas, abar, prev, var,
                         betas * prev.sqrt() / (1 - abar), (1 - prev) * (1 - betas).sqrt() / (1 - abar))
 
 

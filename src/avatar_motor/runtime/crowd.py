@@ -86,6 +86,11 @@ def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: 
     return pack(root, root_rot, local, J, torch.zeros_like(J)).float()
 
 
+def _body_to_world(a: AvatarState) -> torch.Tensor:
+    """The yaw rotation from the avatar's body frame (X left, Z forward) to the world."""
+    return canonical_transform(a.state[None].double()).R[0].float()
+
+
 def validate_vector(v, n: int, what: str) -> torch.Tensor:
     t = torch.as_tensor(v, dtype=torch.float32).flatten()
     if t.numel() != n or not torch.isfinite(t).all():
@@ -183,8 +188,7 @@ class Crowd:
             raise ValueError("impulse scale must be finite")
         joints, v = IMPULSE_PRESETS[preset]
         a = self._get(i)
-        R = canonical_transform(a.state[None].double()).R[0].float()  # body -> world yaw
-        vw = R @ (torch.tensor(v) * IMPULSE_SCALE * scale)
+        vw = _body_to_world(a) @ (torch.tensor(v) * IMPULSE_SCALE * scale)
         dv = torch.zeros(22, 3)
         dv[joints] = vw
         self._add_velocity(a, dv)
@@ -197,7 +201,7 @@ class Crowd:
             raise ValueError(f"unknown joint {joint!r}; use an index 0..21 or one of {JOINT_NAMES}")
         v = validate_vector(velocity, 3, "push velocity")
         if frame == "body":
-            v = canonical_transform(a.state[None].double()).R[0].float() @ v
+            v = _body_to_world(a) @ v
         elif frame != "world":
             raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
         dv = torch.zeros(22, 3)

@@ -40,7 +40,6 @@ class Client:
         self.format = "binary"
         self.authorized = not needs_token
         self.queue: asyncio.Queue = asyncio.Queue(maxsize=2)
-        self.dropped = 0
 
     def offer(self, frames: dict[str, bytes | str]) -> None:
         """Queue the newest frame; a client that has not taken the last two loses the oldest."""
@@ -48,7 +47,6 @@ class Client:
             return
         if self.queue.full():
             self.queue.get_nowait()
-            self.dropped += 1
         self.queue.put_nowait(frames[self.format])
 
 

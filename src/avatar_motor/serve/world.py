@@ -7,7 +7,6 @@ Both hold `lock` while they touch the crowd; the diffusion itself runs outside t
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -50,7 +49,6 @@ class World:
         self.targets: dict[int, Target] = {}
         self.history: dict[int, deque] = {}
         self.events: list[dict] = []  # the commands applied, with their frame: a replayable script
-        self.last_gen_ms = 0.0
         self.stalls = 0  # ticks at which some avatar had no frame ready
 
     # ------------------------------------------------------------ commands
@@ -167,9 +165,7 @@ class World:
             job = self.crowd.prepare(LOOKAHEAD)
         if job is None:
             return
-        t = time.perf_counter()
         seg = self.crowd.compute(job)
-        self.last_gen_ms = (time.perf_counter() - t) * 1000
         with self.lock:
             self.crowd.commit(job, seg)
 
@@ -232,6 +228,6 @@ class World:
 
     def stats(self) -> dict:
         return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd.avatars),
-                "gen_ms": round(self.last_gen_ms, 1), "stalls": self.stalls, "model": self.motor.name,
+                "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls, "model": self.motor.name,
                 "steps": self.config.steps}
 
