@@ -9,7 +9,7 @@ from avatar_motor.runtime.crowd import IMPULSE_PRESETS, Avatar, Crowd, standing_
 from avatar_motor.runtime.guidance import facing_loss_and_grad, move_loss_and_grad
 from avatar_motor.runtime.processing import inertialize, reproject, snap_to_ground
 
-from .conftest_models import tiny_motor
+from .conftest_models import shipped_or_tiny, tiny_motor
 from .test_motion_state import random_states
 
 
@@ -101,8 +101,8 @@ def test_crowd_equals_individual_avatars(motor):
             assert torch.allclose(together[t][ids[k]], alone[t], atol=1e-4)
 
 
-def test_command_takes_effect_at_the_next_frame(motor):
-    crowd = Crowd(motor, seed=0)
+def test_command_takes_effect_at_the_next_frame(tmp_path):
+    crowd = Crowd(shipped_or_tiny(tmp_path), seed=0)  # a trained model: a random one's frames jump anywhere
     i = crowd.spawn()
     crowd.next_frames()
     assert len(crowd.avatars[i].queue) == 14
@@ -201,3 +201,67 @@ def test_mirrored_rotations_give_mirrored_joints():
                               mirror_local_rotations(u.local_rot), off)
     assert torch.allclose(J[..., 0], -u.joints[:, MIRROR, 0], atol=1e-6)
     assert torch.allclose(J[..., 1:], u.joints[:, MIRROR, 1:], atol=1e-6)
+
+
+def _slid(x: torch.Tensor, velocity=(0.4, 0.0, 0.0)) -> torch.Tensor:
+    """States x (B, T, 267) with the whole body carried along at `velocity` m/s (a treadmill slide)."""
+    from avatar_motor.data.motion_state import SLICES
+    T = x.shape[1]
+    d = torch.arange(T, dtype=x.dtype)[:, None] / FPS * torch.tensor(velocity, dtype=x.dtype)  # (T, 3)
+    out = x.clone()
+    out[..., SLICES["root_pos"]] += d
+    out[..., SLICES["joints"]] += d.repeat(1, 22)
+    out[..., SLICES["velocities"]] += torch.tensor(velocity, dtype=x.dtype).repeat(22)
+    return out
+
+
+def test_smoothing_keeps_constant_velocity_motion_exactly():
+    from avatar_motor.runtime.processing import smooth_segment
+    x = _slid(standing_state()[None, None].double().repeat(1, 16, 1), (0.8, 0.0, -0.3))
+    out = smooth_segment(x[:, 0], x[:, 1:], 1.25)
+    # the past continued at x0's velocity in front, the end point-reflected: a straight line stays
+    # a straight line, so segments neither slow down at their ends nor kink at the joins
+    assert torch.allclose(joints_of(out), joints_of(x[:, 1:]), atol=1e-9)
+
+
+def test_velocity_fusion_removes_position_noise_and_keeps_clean_motion():
+    from avatar_motor.runtime.processing import fuse_velocities
+    x = walk_states()
+    x0, seg = x[:, 0], x[:, 1:]
+    assert torch.allclose(joints_of(fuse_velocities(x0, seg, 3.0)), joints_of(seg), atol=1e-9)
+    noisy = seg.clone()
+    noisy[..., 135:201] += torch.randn(noisy[..., 135:201].shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 0.01
+    out = fuse_velocities(x0, noisy, 3.0)
+    err = lambda s: float((joints_of(s) - joints_of(seg)).norm(dim=-1).mean())  # noqa: E731
+    assert err(out) < 0.6 * err(noisy)
+    # the root travels with the pelvis
+    assert torch.allclose(unpack(out).root_pos - joints_of(out)[..., 0, :], unpack(noisy).root_pos - joints_of(noisy)[..., 0, :])
+    assert torch.equal(fuse_velocities(x0, noisy, 0.0), noisy)
+
+
+def test_planted_feet_do_not_slide():
+    from avatar_motor.eval.metrics import asr
+    from avatar_motor.runtime.processing import lock_feet
+    still = standing_state()[None, None].double().repeat(1, 16, 1)
+    slid = _slid(still)  # standing feet carried at 0.4 m/s: pure skating
+    out = lock_feet(slid[:, 0], slid[:, 1:])
+    full = torch.cat((slid[:, :1], out), 1)
+    assert asr(joints_of(slid)) == 1.0 and asr(joints_of(full)) == 0.0
+    assert (joints_of(out) - joints_of(still[:, 1:])).abs().max() < 1e-9  # back where it stood
+    # feet in the air (or fast) are not planted: a jump keeps its travel
+    air = slid.clone()
+    air[..., 136:201:3] += 0.5
+    air[..., 1] += 0.5
+    assert torch.allclose(lock_feet(air[:, 0], air[:, 1:]), air[:, 1:], atol=1e-9)
+
+
+def test_inertialization_matches_velocity_at_the_join():
+    x = walk_states()
+    x0, seg = x[:, 0], x[:, 1:].clone()
+    seg[..., 135:201] += 0.02 * torch.arange(1, 16, dtype=seg.dtype)[:, None] * 30 / FPS  # a velocity mismatch
+    out = inertialize(x0, seg, 0.2, match_velocity=torch.ones(2, dtype=torch.bool))
+    v_first = (joints_of(out)[:, 0] - joints_of(x0)) * FPS
+    plain = inertialize(x0, seg, 0.2)
+    v_plain = (joints_of(plain)[:, 0] - joints_of(x0)) * FPS
+    target = velocities_of(x0)
+    assert (v_first - target).norm(dim=-1).mean() < 0.5 * (v_plain - target).norm(dim=-1).mean()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -101,8 +102,27 @@ def _runtime_config(a):
     if getattr(a, "steps", None):
         cfg.steps = a.steps
     if getattr(a, "no_processing", False):
-        cfg.reproject = cfg.snap = cfg.inertialize = False
+        cfg.reproject = cfg.snap = cfg.inertialize = cfg.lock_feet = False
+        cfg.smooth_sigma = cfg.fuse_velocity = 0.0
+    fields = {f.name: f for f in dataclasses.fields(RuntimeConfig)}
+    for item in getattr(a, "runtime", None) or []:
+        name, eq, value = item.partition("=")
+        if not eq or name not in fields:
+            raise ValueError(f"--runtime {item!r}: write NAME=VALUE with NAME one of {', '.join(fields)}")
+        kind = type(getattr(cfg, name))
+        try:
+            setattr(cfg, name, value.lower() in ("1", "true", "yes", "on") if kind is bool else kind(value))
+        except ValueError:
+            raise ValueError(f"--runtime {item!r}: {name} takes a {kind.__name__}") from None
     return cfg
+
+
+def _add_runtime_args(parser) -> None:
+    parser.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
+    parser.add_argument("--no-processing", action="store_true",
+                        help="the network's raw output: no re-projection, fusion, foot locking, smoothing, snapping or blending")
+    parser.add_argument("--runtime", action="append", metavar="NAME=VALUE",
+                        help="set a runtime option, e.g. smooth_sigma=0 or lock_feet=false (repeatable)")
 
 
 def _eval_realism(a) -> int:
@@ -337,7 +357,8 @@ def _adapt(a) -> int:
 
     cfg = AdaptConfig(base=a.model, data=a.data or ["dataset-1"], out=a.out, task=a.task, kind=a.kind,
                       label_key=a.label_key, classes=[c for c in (a.classes or "").split(",") if c],
-                      steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split, scratch=a.scratch)
+                      steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split,
+                      scratch=a.scratch, clips_per_class=a.clips_per_class, max_minutes=a.max_minutes, lr=a.lr)
     path = adapt(cfg)
     print(f"adaptor written to {path}")
     return 0
@@ -425,7 +446,10 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--kind", choices=["controlnet", "omni", "finetune"], default="controlnet")
     ad.add_argument("--label-key", default="content", help="which clip label is the action (Bandai: content or style)")
     ad.add_argument("--classes", help="comma-separated labels to learn (default: all)")
+    ad.add_argument("--clips-per-class", type=int, default=0, help="few-shot: first N clips of each class (0 = all)")
     ad.add_argument("--steps", type=int, default=2000)
+    ad.add_argument("--lr", type=float, default=1e-4, help="AdamW learning rate (PRIMAL: 1e-4)")
+    ad.add_argument("--max-minutes", type=float, default=0.0, help="stop after this much wall time (0 = no limit)")
     ad.add_argument("--batch", type=int)
     ad.add_argument("--seed", type=int, default=0)
     ad.add_argument("--out", default="runs/adapt")
@@ -440,7 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--port", type=int, default=8765)
     sv.add_argument("--token", help="required when --host is not a loopback address")
     sv.add_argument("--seed", type=int, default=0)
-    sv.add_argument("--steps", type=int, help="denoising steps per segment")
+    _add_runtime_args(sv)
     sv.add_argument("--threads", type=int, help="torch threads for generation")
     sv.add_argument("--adaptor", help="adaptor folder (action labels or reaching targets)")
     sv.add_argument("--open-browser", action="store_true")
@@ -457,12 +481,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--init", help="FILE.bvh[:FRAME] or FILE.npz[:FRAME]: start from a frame of a motion file")
     g.add_argument("--impulse", action="append", help="NAME@SECONDS, e.g. left_kick@2 (repeatable)")
     g.add_argument("--goal", action="append", help="VX,VZ[@SECONDS] world m/s, or free[@SECONDS] (repeatable)")
-    g.add_argument("--steps", type=int, help="denoising steps per segment")
     g.add_argument("--adaptor", help="adaptor folder from 'avatar-motor adapt' (labels or targets)")
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
     g.add_argument("--label-scale", type=float, default=1.0, help="adaptor strength (0 = base model)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
-    g.add_argument("--no-processing", action="store_true")
+    _add_runtime_args(g)
     g.add_argument("--out", required=True)
     g.set_defaults(func=_generate)
 
@@ -472,8 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
     er.add_argument("--n", type=int, default=64)
     er.add_argument("--seconds", type=float, default=8.0)
     er.add_argument("--stability-seconds", type=float, default=60.0)
-    er.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
-    er.add_argument("--no-processing", action="store_true", help="turn off re-projection, snapping and inertialization")
+    _add_runtime_args(er)
     er.add_argument("--seed", type=int, default=0)
     er.add_argument("--data", nargs="*", help="motion caches (default: dataset-1 dataset-2)")
     er.add_argument("--png", help="contact sheet of a few rollouts")
@@ -486,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--model", default=str(DEFAULT_MODEL))
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float, default=3.0)
-        e.add_argument("--steps", type=int)
+        _add_runtime_args(e)
         e.add_argument("--seed", type=int, default=0)
         e.add_argument("--data", nargs="*")
         e.set_defaults(func=fn)
@@ -500,7 +522,7 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--encoder-steps", type=int, default=1500)
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float)
-        e.add_argument("--steps", type=int)
+        _add_runtime_args(e)
         e.add_argument("--seed", type=int, default=0)
         e.set_defaults(func=_eval_adaptation)
     b = sub.add_parser("bench", help="per-segment timings (Table A6), crowd throughput, reaction latency")

@@ -51,6 +51,19 @@ class RealData:
         return torch.stack(out)
 
 
+def training_poses(caches: list[MotionCache], n: int, g: torch.Generator) -> torch.Tensor:
+    """n local-rotation poses (n, 21, 3, 3) drawn uniformly from the frames of the training clips."""
+    clips = [(c, i) for c in caches for i, clip in enumerate(c.clips) if not is_held_out(clip["key"])]
+    lengths = torch.tensor([c.clips[i]["frames"] for c, i in clips])
+    pick = torch.multinomial(lengths.double(), n, replacement=True, generator=g)
+    frames = (torch.rand(n, generator=g) * lengths[pick]).long()
+    out = []
+    for k, f in zip(pick.tolist(), frames.tolist()):
+        c, i = clips[k]
+        out.append(torch.from_numpy(c.clip(i)[1][f]).double())
+    return rot.quat_to_matrix(torch.stack(out))[:, 1:].float()
+
+
 def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int, cfg: RuntimeConfig, seed: int,
             controls=None, adaptor=None) -> torch.Tensor:
     """Batched autoregressive rollout: (B, 1 + frames, 267) world states, init first.
@@ -82,14 +95,13 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     J = joints_of(X)
     real = RealData.load(caches)
     Jr = real.windows(seconds)
-    # pose naturalness: nearest real pose, generated vs real (disjoint halves of the held-out poses)
-    # the reference holds the held-out poses and their mirror images (the model is trained with
-    # mirroring, and a mirrored pose is a real pose); queries of real poses come from the other half
-    real_rot = torch.cat(real.local_rot)
-    perm = torch.randperm(len(real_rot), generator=g)
-    ref_rot = real_rot[perm[: len(perm) // 2]][:10000]
+    # pose naturalness: distance to the nearest training pose (and its mirror image: the model is
+    # trained with mirroring), generated poses vs held-out real poses. The held-out clips are
+    # unseen by the model, so the real value is what a new, real performance scores.
+    ref_rot = training_poses(caches, 10000, g)
     ref = M.pose_features(torch.cat((ref_rot, M.mirror_local_rotations(ref_rot))))
-    real_q = M.pose_features(real_rot[perm[len(perm) // 2:]][:4000])
+    real_rot = torch.cat(real.local_rot)
+    real_q = M.pose_features(real_rot[torch.randperm(len(real_rot), generator=g)[:4000]])
     gen_poses = M.pose_features(unpack(X[:, 1:].reshape(-1, X.shape[-1])).local_rot)
     gen_poses = gen_poses[torch.randperm(len(gen_poses), generator=g)[:4000]]
     d_gen = float(M.nn_pose_distance(gen_poses, ref).mean())

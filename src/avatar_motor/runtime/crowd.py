@@ -20,7 +20,7 @@ from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinemat
 from ..data.motion_state import SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, move_loss_and_grad, path_loss_and_grad
-from .processing import inertialize, reproject, smooth_segment, snap_to_ground
+from .processing import fuse_velocities, inertialize, lock_feet, reproject, smooth_segment, snap_to_ground
 
 
 def _joints(*names: str) -> list[int]:
@@ -45,8 +45,10 @@ class RuntimeConfig:
     reproject: bool = False  # PRIMAL's joint re-projection; off: with this model it raises jitter 2.5x -> 12.3x (measured)
     snap: bool = True
     inertialize: bool = True
-    inertia_halflife: float = 0.1
-    smooth_sigma: float = 1.0  # temporal low-pass of each segment, frames (0 = off); our addition
+    inertia_halflife: float = 0.2  # 0.1 measured jerkier at the joins and more skating
+    smooth_sigma: float = 1.25  # temporal low-pass of each segment, frames (0 = off); our addition
+    lock_feet: bool = True  # planted feet do not slide: root motion corrected from foot contacts; our addition
+    fuse_velocity: float = 3.0  # weight of the predicted velocities in the joint locations (0 = off); our addition
     # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
     move_weight: float = 50.0  # PRIMAL's L_move (mean joint velocity), its §9.2 default
     path_weight: float = 40.0  # our L_path (centroid travels at the goal velocity)
@@ -250,11 +252,15 @@ class Crowd:
         if not avs:
             return None
         x0 = torch.stack([a.queue[-1] if a.queue else a.state for a in avs]).double()
+        dv = torch.zeros(len(avs), 22, 3, dtype=torch.float64)  # impulses: world velocities added to x0
+        impulse = torch.zeros(len(avs), dtype=torch.bool)
         for k, a in enumerate(avs):
             if a.pending_velocity is not None and not a.queue:
-                x0[k, SLICES["velocities"]] += a.pending_velocity.double().flatten()
+                dv[k] = a.pending_velocity.double()
                 a.pending_velocity = None
+                impulse[k] = True
         return {"avatars": [a.id for a in avs], "epochs": [a.epoch for a in avs], "x0": x0,
+                "impulse_velocity": dv, "impulse": impulse,
                 "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
                 "labels": [a.label for a in avs], "label_scales": [a.label_scale for a in avs],
                 "targets": [a.target for a in avs],
@@ -268,6 +274,7 @@ class Crowd:
         cfg, motor = self.cfg, self.motor
         t0 = time.perf_counter()
         x0 = job["x0"]
+        B = len(x0)
         offsets = rest_offsets(job["shapes"], torch.float64)
         # 1 canonicalize (+ re-projection)
         tf = canonical_transform(x0)
@@ -275,21 +282,27 @@ class Crowd:
         x0c = apply_transform(x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
         if cfg.reproject:
             x0c = reproject(x0c, offsets)
+        # the network sees the impulse in x0's velocities; the blending below keeps the true x0
+        x0_cond = x0c.clone()
+        x0_cond[:, SLICES["velocities"]] += (job["impulse_velocity"] @ Rt.transpose(-1, -2)).reshape(B, 66)
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance
         norm = motor.norm
-        cond = norm.encode(x0c.float())
+        cond = norm.encode(x0_cond.float())
         guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float(), x0c.float())
-        B, N = len(x0), self.frames_per_segment
+        N = self.frames_per_segment
         seg_n = motor.diffusion.sample(self._denoiser(job, tf, cond), (B, N, STATE_DIM), cfg.steps, job["gens"], guide, cfg.eta)
         t2 = time.perf_counter()
         seg = norm.decode(seg_n).double()
+        seg = fuse_velocities(x0c, seg, cfg.fuse_velocity)
+        if cfg.lock_feet:
+            seg = lock_feet(x0c, seg)
         if cfg.smooth_sigma > 0:
             seg = smooth_segment(x0c, seg, cfg.smooth_sigma)
         if cfg.snap:
             seg = snap_to_ground(seg)
         if cfg.inertialize:
-            seg = inertialize(x0c, seg, cfg.inertia_halflife)
+            seg = inertialize(x0c, seg, cfg.inertia_halflife, match_velocity=~job["impulse"])
         # 4 back to world
         seg_w = apply_transform(seg, tf.R, tf.t).float()
         t3 = time.perf_counter()

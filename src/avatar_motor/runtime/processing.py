@@ -7,7 +7,7 @@ import math
 import torch
 
 from ..body import rotations as rot
-from ..body.skeleton import FOOT_CLEARANCE, forward_kinematics
+from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, forward_kinematics
 from ..data.motion_state import FPS, SLICES, pack, unpack
 
 
@@ -20,23 +20,59 @@ def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) -> torch.Tensor:
+    """Joint locations that agree with both of the network's estimates (our addition): the
+    predicted locations P and the predicted velocities V, which are about twice as smooth as the
+    differences of P. Per joint and axis, least squares over the segment's frames x_1..x_N with x0
+    fixed: sum |x_t - P_t|^2 + weight sum |x_t - x_{t-1} - V_t / fps|^2. One N x N system shared
+    by every channel. The root follows the pelvis; velocities are recomputed as differences."""
+    if weight <= 0:
+        return seg
+    B, N, _ = seg.shape
+    u0, u = unpack(x0), unpack(seg)
+    D = torch.eye(N, dtype=seg.dtype) - torch.diag(torch.ones(N - 1, dtype=seg.dtype), -1)  # x_t - x_{t-1}
+    A = torch.eye(N, dtype=seg.dtype) + weight * D.T @ D
+    b = u.velocities.reshape(B, N, 66) / FPS
+    b[:, 0] += u0.joints.reshape(B, 66)  # the first difference is taken from x0
+    rhs = u.joints.reshape(B, N, 66) + weight * D.T @ b
+    joints = torch.linalg.solve(A, rhs).reshape(B, N, 22, 3)
+    prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
+    root_pos = u.root_pos + (joints[:, :, 0] - u.joints[:, :, 0])
+    return pack(root_pos, u.root_rot, u.local_rot, joints, (joints - prev) * FPS)
+
+
+def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
+    """r frames before the initial state x0 (B, 267), oldest first: positions extrapolated back
+    along x0's joint velocities (the past continued at constant velocity), rotations held."""
+    u = unpack(x0)
+    k = torch.arange(r, 0, -1, dtype=x0.dtype)[None, :, None]  # r .. 1 frames back
+    past = x0[:, None].repeat(1, r, 1)
+    vel = u.velocities.reshape(len(x0), 1, 66)
+    past[..., SLICES["joints"]] = x0[:, None, SLICES["joints"]] - k * vel / FPS
+    past[..., SLICES["root_pos"]] = x0[:, None, SLICES["root_pos"]] - k * vel[..., :3] / FPS  # root = pelvis
+    return past
+
+
 def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float = 1.0) -> torch.Tensor:
     """Temporal low-pass of a generated segment (our addition to PRIMAL's processing): a Gaussian
     of `sigma` frames along time over root position, rotations (in 6D, re-orthonormalized) and joint
-    locations, with the initial state x0 (B, 267) fixed in front so the join stays continuous and
-    the end reflected. The network's x0 estimate keeps a little of the last step's noise; at 30 fps
-    that is mm-scale jitter which reads as foot skating. Velocities are recomputed afterwards."""
+    locations. In front of the segment stands x0's past continued at x0's velocity, so the join
+    keeps its speed; the end is point-reflected. The network's x0 estimate keeps a little of the last
+    step's noise; at 30 fps that is mm-scale jitter which reads as foot skating. Velocities are
+    recomputed afterwards."""
     if sigma <= 0:
         return seg
     B, N, D = seg.shape
     r = max(1, int(math.ceil(2.5 * sigma)))
     k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=seg.dtype) / sigma) ** 2)
     k = k / k.sum()
-    # x0 repeated in front (the past is held), the end reflected
-    pad_front = x0[:, None].expand(B, r, D)
-    pad_back = seg.flip(1)[:, 1:r + 1]
-    if pad_back.shape[1] < r:
-        pad_back = torch.cat((pad_back, seg[:, -1:].expand(B, r - pad_back.shape[1], D)), 1)
+    pad_front = torch.cat((_history(x0, r - 1), x0[:, None]), 1) if r > 1 else x0[:, None]
+    # the end point-reflected (2 x_N - x_{N-k}): continues the segment's trend, where a mirror
+    # image would bring every segment to a halt at its last frame
+    mirror = seg.flip(1)[:, 1:r + 1]
+    if mirror.shape[1] < r:
+        mirror = torch.cat((mirror, seg[:, :1].expand(B, r - mirror.shape[1], D)), 1)
+    pad_back = 2 * seg[:, -1:] - mirror
     full = torch.cat((pad_front, seg, pad_back), 1)  # (B, N + 2r, D)
     out = torch.nn.functional.conv1d(full.transpose(1, 2).reshape(B * D, 1, -1), k.view(1, 1, -1)).reshape(B, D, N).transpose(1, 2)
     u = unpack(out)
@@ -57,6 +93,32 @@ def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.T
     return out
 
 
+def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2)) -> torch.Tensor:
+    """Root motion from the feet (our addition, as game engines do): a foot that is low and slow is
+    planted, so whatever it slides horizontally is the body sliding. Each frame's horizontal
+    translation of the whole body is corrected by minus the contact-weighted mean slide of the two
+    feet, accumulated over the segment (x0 stays where it is). Contact weights ramp linearly from
+    1 to 0 between the bounds of `height` (m above ground) and `speed` (m/s), so the correction
+    fades in and out without a jolt. Bones and rotations are untouched; velocities are recomputed."""
+    B, N, _ = seg.shape
+    u0, u = unpack(x0), unpack(seg)
+    feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
+    P = torch.cat((u0.joints[:, None], u.joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
+    step = (P[:, 1:] - P[:, :-1])[..., [0, 2]]  # (B, N, 2, 2) per-frame horizontal slide
+    h, v = P[:, 1:, :, 1], step.norm(dim=-1) * FPS
+
+    def ramp(x, lo, hi):
+        return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
+
+    c = ramp(h, *height) * ramp(v, *speed)  # (B, N, 2)
+    d = -(c[..., None] * step).sum(2) / c.sum(2, keepdim=True).clamp(min=1.0)  # (B, N, 2)
+    off = torch.zeros(B, N, 3, dtype=seg.dtype)
+    off[..., [0, 2]] = d.cumsum(1)
+    joints = u.joints + off[:, :, None]
+    prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
+    return pack(u.root_pos + off, u.root_rot, u.local_rot, joints, (joints - prev) * FPS)
+
+
 def _damping(halflife: float) -> float:
     return 4.0 * math.log(2.0) / max(halflife, 1e-5)
 
@@ -69,15 +131,18 @@ def spring_decay(x: torch.Tensor, v: torch.Tensor, halflife: float, t: torch.Ten
     return e * (x + j1 * t)
 
 
-def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1) -> torch.Tensor:
+def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
+                match_velocity: torch.Tensor | None = None) -> torch.Tensor:
     """Blend the start of generated frames seg (B, N, 267) into the initial state x0 (B, 267).
 
     The new motion, extrapolated back one frame to the time of x0 (x1 - (x2 - x1)), should be x0;
     the difference is an offset that decays as a critically damped spring (Holden's
     inertialization) over the segment, for the root position, the joint locations and every
-    rotation (as rotation vectors). The velocity offset is taken as zero: x0's velocity may carry
-    an impulse, which the network has already turned into motion and must not be added again.
-    Velocities are then recomputed as backward differences, so the result is consistent.
+    rotation (as rotation vectors). Where match_velocity (B,) is true the joint velocities are
+    matched too (offset x0's velocity minus the new motion's first velocity), so the stream has no
+    kink at the join. Where it is false (the avatar was just pushed: x0's velocity carries an impulse
+    that the network has already turned into motion and must not be added again) only positions
+    are blended. Velocities are then recomputed as backward differences, so the result is consistent.
     """
     B, N, _ = seg.shape
     dt = 1.0 / FPS
@@ -86,7 +151,11 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1) -> t
     nxt = 1 if N > 1 else 0
     back = 2 * u.joints[:, 0] - u.joints[:, nxt]  # the segment extrapolated to x0's time
     off_J = (u0.joints - back).reshape(B, 1, 66)
-    dJ = spring_decay(off_J, torch.zeros_like(off_J), halflife, t).reshape(B, N, 22, 3)
+    off_V = torch.zeros_like(off_J)
+    if match_velocity is not None and N > 1:
+        v_new = (u.joints[:, nxt] - u.joints[:, 0]) * FPS
+        off_V = torch.where(match_velocity.reshape(B, 1, 1), (u0.velocities - v_new).reshape(B, 1, 66), off_V)
+    dJ = spring_decay(off_J, off_V, halflife, t).reshape(B, N, 22, 3)
     joints = u.joints + dJ
     root_pos = u.root_pos + dJ[:, :, 0]  # the root is the pelvis
     R0 = torch.cat((u0.root_rot[:, None], u0.local_rot), 1)  # (B, 22, 3, 3)

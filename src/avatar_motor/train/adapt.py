@@ -28,6 +28,7 @@ class AdaptConfig:
     kind: str = "controlnet"  # or "omni", "finetune"
     label_key: str = "content"  # which clip label names the action
     classes: list[str] = field(default_factory=list)  # empty: every label value found
+    clips_per_class: int = 0  # few-shot: keep the first N clips (by file name) of each class; 0 = all
     steps: int = 2000
     batch: int = 16  # PRIMAL: 16 for actions, 128 for reaching
     lr: float = 1e-4
@@ -37,12 +38,29 @@ class AdaptConfig:
     seed: int = 0
     split: str = "train"
     scratch: bool = False  # PRIMAL's "scratch training" baseline: a fresh network, trained like finetune
+    max_minutes: float = 0.0  # stop early after this much wall time (0 = run all steps)
 
 
 def target_of(x: torch.Tensor) -> torch.Tensor:
     """The reaching target of a canonical window: pelvis XZ of its last frame."""
     J = x[:, -1, SLICES["joints"]].reshape(-1, 22, 3)
     return J[:, 0, [0, 2]]
+
+
+def _label_filter(caches: list[MotionCache], cfg: AdaptConfig, classes: list[str]):
+    """Which clips form the adaptation set: those labelled with one of `classes`, at most
+    cfg.clips_per_class of each (the first by file name among the chosen split)."""
+    from ..data.cache import is_held_out
+    wanted = {"train": False, "heldout": True}.get(cfg.split)
+    chosen: dict[str, list[str]] = {c: [] for c in classes}
+    for clip in sorted((c for m in caches for c in m.clips), key=lambda c: c["key"]):
+        label = clip["labels"].get(cfg.label_key)
+        if label in chosen and (wanted is None or is_held_out(clip["key"]) == wanted):
+            chosen[label].append(clip["key"])
+    if cfg.clips_per_class > 0:
+        chosen = {c: keys[: cfg.clips_per_class] for c, keys in chosen.items()}
+    keys = {k for ks in chosen.values() for k in ks}
+    return lambda clip: clip["key"] in keys
 
 
 def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
@@ -65,7 +83,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         unknown = sorted(set(classes) - set(found))
         if unknown or not classes:
             raise ValueError(f"labels {unknown or classes} are not among the '{cfg.label_key}' labels of the data: {found}")
-        keep = lambda clip: clip["labels"].get(cfg.label_key) in classes  # noqa: E731
+        keep = _label_filter(caches, cfg, classes)
     else:
         classes = []
     ds = SegmentDataset(caches, SegmentConfig(split=cfg.split), clip_filter=keep)
@@ -83,6 +101,8 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     t0 = time.time()
     log = []
     for step in bar:
+        if cfg.max_minutes and time.time() - t0 > cfg.max_minutes * 60:
+            break
         x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
         if cfg.task == "actions":
             y = torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clip])
@@ -101,8 +121,8 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         log.append(float(losses["loss"].detach()))
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
-    info = {"task": cfg.task, "steps": cfg.steps, "seconds": time.time() - t0, "windows": len(ds),
-            "frames": ds.frames_total, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])),
+    info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
+            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])),
             "licence": motor.config.get("licence", "")}
     model.eval()
     return save_adaptor(out / "adaptor", model, motor.name, info)
