@@ -65,3 +65,38 @@ def test_studio_in_chromium(tmp_path, artifacts):
             browser.close()
     finally:
         srv.stop()
+
+
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian chromium not installed (make test installs it)")
+def test_studio_offers_the_labels_of_an_action_adaptor(tmp_path, artifacts):
+    from playwright.sync_api import sync_playwright
+
+    from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig
+    motor = shipped_or_tiny(tmp_path)
+    adaptor = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["bow", "wave"])).eval()  # untrained: the mechanics
+    world = World(motor, RuntimeConfig(), seed=0, adaptor=adaptor)
+    world.apply({"type": "spawn"}, log=False)
+    srv = Running(world)
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+            page = browser.new_page(viewport={"width": 1100, "height": 700})
+            page.goto(f"http://127.0.0.1:{srv.port}/")
+            page.wait_for_function("window.studio && window.studio.frame > 5", timeout=30000)
+            buttons = page.eval_on_selector_all("#labels button", "bs => bs.map(b => b.textContent)")
+            assert buttons == ["bow", "wave", "none"]
+            page.fill("#scale", "2")
+            page.click("#labels button[data-label='wave']")
+            deadline = time.time() + 5
+            while time.time() < deadline and world.crowd.avatars[0].label is None:
+                time.sleep(0.05)
+            assert world.crowd.avatars[0].label == 1 and world.crowd.avatars[0].label_scale == 2.0
+            page.click("#labels button[data-label='']")
+            deadline = time.time() + 5
+            while time.time() < deadline and world.crowd.avatars[0].label is not None:
+                time.sleep(0.05)
+            assert world.crowd.avatars[0].label is None
+            assert page.evaluate("window.studio.errors.length") == 0
+            browser.close()
+    finally:
+        srv.stop()

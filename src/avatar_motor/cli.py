@@ -102,7 +102,7 @@ def _runtime_config(a):
     if getattr(a, "steps", None):
         cfg.steps = a.steps
     if getattr(a, "no_processing", False):
-        cfg.reproject = cfg.snap = cfg.inertialize = cfg.lock_feet = False
+        cfg.reproject = cfg.snap = cfg.inertialize = cfg.lock_feet = cfg.fit_rotations = False
         cfg.smooth_sigma = cfg.fuse_velocity = 0.0
     fields = {f.name: f for f in dataclasses.fields(RuntimeConfig)}
     for item in getattr(a, "runtime", None) or []:
@@ -120,7 +120,7 @@ def _runtime_config(a):
 def _add_runtime_args(parser) -> None:
     parser.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
     parser.add_argument("--no-processing", action="store_true",
-                        help="the network's raw output: no re-projection, fusion, foot locking, smoothing, snapping or blending")
+                        help="the network's raw output: no re-projection, fusion, foot locking, smoothing, snapping, blending or rotation fitting")
     parser.add_argument("--runtime", action="append", metavar="NAME=VALUE",
                         help="set a runtime option, e.g. smooth_sigma=0 or lock_feet=false (repeatable)")
 
@@ -378,18 +378,24 @@ def _named_adaptors(specs: list[str], motor):
 
 
 def _eval_adaptation(a) -> int:
-    from .eval.adaptation import eval_actions, eval_reach, format_rows, train_encoder
+    from .eval.adaptation import TARGETS, eval_actions, eval_reach, format_rows, train_encoder
     from .eval.control import initial_states
     from .model.checkpoint import load_checkpoint
+    from .viz import label_grid, target_paths
 
     motor = load_checkpoint(a.model)
     ads = _named_adaptors(a.adaptors, motor)
+    methods = {"base": None, **ads}  # the unadapted model as the reference row
     caches = _caches(a.data)
     init, shapes, _ = initial_states(caches, a.n, a.seed)
+    cfg = _runtime_config(a)
     if a.ecmd == "reach":
-        rows = eval_reach(motor, ads, init, shapes, a.seconds or 2.0, a.seed, _runtime_config(a))
+        rows, paths = eval_reach(motor, methods, init, shapes, a.seconds or 2.0, a.seed, cfg)
         print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s",
                           rows, ["min_dist_m", "ASR", "ANCR"]))
+        if a.png:
+            target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
+            print(f"pelvis paths: {a.png}")
         return 0
     from .data.dataset import SegmentConfig, SegmentDataset
     classes = sorted({tuple(ad.cfg.labels) for ad in ads.values()})
@@ -400,9 +406,16 @@ def _eval_adaptation(a) -> int:
     ds = SegmentDataset(caches, SegmentConfig(frames=int(3 * 30), split="all"),
                         clip_filter=lambda c: c["labels"].get(key) in classes)
     enc = train_encoder(ds, key, classes, steps=a.encoder_steps, seed=a.seed, progress=print)
-    rows = eval_actions(motor, ads, enc, init, shapes, classes, a.seconds or 3.0, a.seed, _runtime_config(a))
-    print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {a.seconds or 3.0:g} s",
-                      rows, ["R_precision", "ASR", "ANCR"]))
+    rows, rollouts = eval_actions(motor, methods, enc, init, shapes, classes, a.seconds or 3.0, a.seed, cfg, a.label_scale)
+    print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {a.seconds or 3.0:g} s, "
+                      f"label scale {a.label_scale:g}", rows, ["R_precision", "ASR", "ANCR"]))
+    if a.png:
+        from .eval.adaptation import canonical_joints
+        shown = next(iter(ads))
+        clips = {lb: [canonical_joints(X[k:k + 1])[0].reshape(-1, 22, 3).numpy() for k in range(min(5, len(X)))]
+                 for lb, X in rollouts[shown].items()}
+        label_grid(clips, a.png, title=f"{shown}: 5 rollouts per label, {a.seconds or 3.0:g} s each")
+        print(f"labelled rollouts: {a.png}")
     return 0
 
 
@@ -520,6 +533,9 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--data", nargs="*", help="motion caches the adaptors were trained on (default: dataset-1 dataset-2)")
         e.add_argument("--label-key", default="content")
         e.add_argument("--encoder-steps", type=int, default=1500)
+        e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
+        if name == "actions":
+            e.add_argument("--label-scale", type=float, default=1.0, help="adaptor strength (classifier-free guidance weight)")
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float)
         _add_runtime_args(e)

@@ -60,3 +60,65 @@ def contact_sheet(rows: list[np.ndarray], path: str | Path, titles: list[str] | 
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def label_grid(clips: dict[str, list[np.ndarray]], path: str | Path, poses: int = 6, title: str = "") -> None:
+    """One row per label, one column per clip (T, 22, 3) in the clip's first-frame canonical frame
+    (facing +Z): a side-view strobe of `poses` evenly spaced poses, spread 0.6 m apart and moved by
+    the body's own travel, so labels can be compared at a glance."""
+    labels = list(clips)
+    cols = max(len(v) for v in clips.values())
+    fig, axes = plt.subplots(len(labels), cols, figsize=(2.6 * cols, 1.9 * len(labels)), squeeze=False)
+    for r, label in enumerate(labels):
+        for c in range(cols):
+            ax = axes[r, c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if c >= len(clips[label]):
+                ax.axis("off")
+                continue
+            J = clips[label][c]
+            idx = np.linspace(0, len(J) - 1, poses).round().astype(int)
+            for k, f in enumerate(idx):
+                P = J[f]
+                xy = np.stack((P[:, 2] - J[0, 0, 2] + 0.6 * k, P[:, 1]), 1)
+                _draw(ax, np.concatenate((xy, P[:, :1]), 1), alpha=0.35 + 0.65 * k / max(1, poses - 1))
+            ax.axhline(0, color="0.6", lw=0.8)
+            ax.set_ylim(-0.1, 2.0)
+            ax.set_aspect("equal", adjustable="datalim")
+            if c == 0:
+                ax.set_ylabel(label, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def target_paths(paths: dict[str, np.ndarray], targets: list[tuple[float, float]], path: str | Path) -> None:
+    """Top-down pelvis paths to reaching targets, one panel per method: paths[method] has shape
+    (len(targets), n, T, 2) in each initial state's frame (x left, z forward; start at the origin)."""
+    methods = list(paths)
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.8), squeeze=False)
+    colors = plt.cm.tab10(np.arange(len(targets)))
+    for m, name in enumerate(methods):
+        ax = axes[0, m]
+        for k, (tx, tz) in enumerate(targets):
+            for p in paths[name][k]:
+                ax.plot(-p[:, 0], p[:, 1], color=colors[k], lw=0.6, alpha=0.5)  # x is the body's left: drawn leftwards
+            ax.plot(-tx, tz, marker="*", ms=12, color=colors[k], mec="k")
+        ax.plot(0, 0, "ko", ms=4)
+        ax.set_aspect("equal")
+        ax.set_xlim(-2.2, 2.2)
+        ax.set_ylim(-2.2, 2.2)
+        ax.grid(alpha=0.3)
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel("right (m)", fontsize=8)
+        ax.set_ylabel("forward (m)", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -125,6 +125,7 @@ function connect() {
       $("model").textContent = msg.model;
       $("licence").textContent = msg.licence;
       buildPresets(msg.presets);
+      buildLabels(msg.adaptor);
       $("warn").textContent = "";
     } else if (msg.type === "stats") {
       state.lastStats = msg;
@@ -189,6 +190,19 @@ function buildPresets(presets) {
     b.dataset.preset = p;
     b.onclick = () => send({ type: "impulse", avatar: state.selected, preset: p });
     $("presets").appendChild(b);
+  }
+}
+// an action adaptor's labels: one button each, "none" releases, the slider is the CFG scale
+function buildLabels(adaptor) {
+  const labels = adaptor && adaptor.control === "label" ? adaptor.labels : [];
+  $("actions").style.display = labels.length ? "" : "none";
+  $("labels").innerHTML = "";
+  for (const l of [...labels, null]) {
+    const b = document.createElement("button");
+    b.textContent = l ?? "none";
+    b.dataset.label = l ?? "";
+    b.onclick = () => send({ type: "label", avatar: state.selected, label: l, scale: Number($("scale").value) });
+    $("labels").appendChild(b);
   }
 }
 $("add").onclick = async () => {

@@ -99,42 +99,51 @@ def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int,
 
 
 def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: list[str], seconds: float = 3.0,
-                 seed: int = 0, cfg: RuntimeConfig | None = None) -> list[dict]:
+                 seed: int = 0, cfg: RuntimeConfig | None = None, label_scale: float = 1.0) -> tuple[list[dict], dict]:
+    """Rows of Table A3 (a method named "base" with adaptor None is the unadapted model) and the
+    rollouts {method: {label: (n, T, 267)}}."""
     cfg = cfg or RuntimeConfig()
     menc, lenc = encoder
-    rows = []
+    rows, rollouts = [], {}
     for name, ad in adaptors.items():
-        Xs, ys = [], []
+        Xs, ys, per_label = [], [], {}
         for c, label in enumerate(classes):
-            X = _rollout(motor, ad, init, shapes, int(seconds * FPS),
-                         lambda crowd, i, k, label=label: crowd.set_label(i, label), seed, cfg)
+            setup = (lambda crowd, i, k, label=label: crowd.set_label(i, label, label_scale)) if ad is not None else (lambda *_: None)
+            X = _rollout(motor, ad, init, shapes, int(seconds * FPS), setup, seed, cfg)
             Xs.append(X)
             ys.append(torch.full((len(X),), c))
+            per_label[label] = X
         X, y = torch.cat(Xs), torch.cat(ys)
+        rollouts[name] = per_label
         rows.append({"method": name, "R_precision": r_precision(menc, lenc, X, y), "ASR": M.asr(joints_of(X)),
                      "ANCR": M.ancr(joints_of(X))})
-    return rows
+    return rows, rollouts
 
 
 def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0, seed: int = 0,
-               cfg: RuntimeConfig | None = None) -> list[dict]:
+               cfg: RuntimeConfig | None = None) -> tuple[list[dict], dict]:
+    """Rows of Table A4 and the pelvis paths {method: (8 targets, n, T, 2)} in each initial state's
+    own frame (x left, z forward), where the targets are TARGETS."""
     from ..data.motion_state import canonical_transform
     cfg = cfg or RuntimeConfig()
     tf = canonical_transform(init.double())
-    rows = []
+    rows, paths = [], {}
     for name, ad in adaptors.items():
-        dists, Js = [], []
+        dists, Js, local = [], [], []
         for tx, tz in TARGETS:
             world = (tf.R.float() @ torch.tensor([tx, 0.0, tz]) + tf.t.float())[:, [0, 2]]  # (n, 2)
-            X = _rollout(motor, ad, init, shapes, int(seconds * FPS),
-                         lambda crowd, i, k, world=world: crowd.set_target(i, world[k].tolist()), seed, cfg)
+            setup = (lambda crowd, i, k, world=world: crowd.set_target(i, world[k].tolist())) if ad is not None else (lambda *_: None)
+            X = _rollout(motor, ad, init, shapes, int(seconds * FPS), setup, seed, cfg)
             J = joints_of(X)
             d = (J[:, :, 0, [0, 2]] - world[:, None]).norm(dim=-1).amin(1)
             dists.append(d)
             Js.append(J)
+            pel = J[:, :, 0].double() - tf.t[:, None]
+            local.append((pel @ tf.R)[..., [0, 2]].float())  # R^T p per frame
         J = torch.cat(Js)
+        paths[name] = torch.stack(local)
         rows.append({"method": name, "min_dist_m": float(torch.cat(dists).mean()), "ASR": M.asr(J), "ANCR": M.ancr(J)})
-    return rows
+    return rows, paths
 
 
 def format_rows(title: str, rows: list[dict], keys: list[str]) -> str:

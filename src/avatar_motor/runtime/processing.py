@@ -7,7 +7,7 @@ import math
 import torch
 
 from ..body import rotations as rot
-from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, forward_kinematics
+from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, PARENTS, forward_kinematics
 from ..data.motion_state import FPS, SLICES, pack, unpack
 
 
@@ -18,6 +18,32 @@ def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     out = x0.clone()
     out[..., SLICES["joints"]] = J.reshape(*x0.shape[:-1], 66)
     return out
+
+
+def fit_rotations(seg: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Joint rotations that point every bone at the generated joint locations (our addition: the
+    inverse of PRIMAL's re-projection). The network's locations are its better channel (fused with
+    its velocities, foot-locked, smoothed); its rotations miss them by a few cm. Top-down, each
+    joint's predicted world rotation is turned by the smallest rotation (one child) or the Kabsch
+    rotation (several children) that takes its rest bone directions onto the generated ones; the
+    predicted twist is kept. Locations are unchanged. seg (B, N, 267), offsets (B, 22, 3)."""
+    u = unpack(seg)
+    off = offsets.to(seg.dtype)[:, None]  # (B, 1, 22, 3)
+    children = [[c for c, p in enumerate(PARENTS) if p == j] for j in range(len(PARENTS))]
+    G: list[torch.Tensor] = []
+    local = []
+    for j, parent in enumerate(PARENTS):
+        pred = u.root_rot if parent < 0 else G[parent] @ u.local_rot[..., j - 1, :, :]
+        kids = children[j]
+        if kids:
+            src = rot.normalize(torch.stack([(pred @ off[..., c, :, None])[..., 0] for c in kids], -2))
+            dst = rot.normalize(torch.stack([u.joints[..., c, :] - u.joints[..., j, :] for c in kids], -2))
+            fix = rot.rotation_between(src[..., 0, :], dst[..., 0, :]) if len(kids) == 1 else rot.kabsch(src, dst)
+            pred = fix @ pred
+        G.append(pred)
+        if parent >= 0:
+            local.append(G[parent].transpose(-1, -2) @ pred)
+    return pack(u.root_pos, G[0], torch.stack(local, -3), u.joints, u.velocities)
 
 
 def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) -> torch.Tensor:
@@ -93,13 +119,15 @@ def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.T
     return out
 
 
-def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2)) -> torch.Tensor:
+def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2),
+              where: torch.Tensor | None = None) -> torch.Tensor:
     """Root motion from the feet (our addition, as game engines do): a foot that is low and slow is
     planted, so whatever it slides horizontally is the body sliding. Each frame's horizontal
     translation of the whole body is corrected by minus the contact-weighted mean slide of the two
     feet, accumulated over the segment (x0 stays where it is). Contact weights ramp linearly from
     1 to 0 between the bounds of `height` (m above ground) and `speed` (m/s), so the correction
-    fades in and out without a jolt. Bones and rotations are untouched; velocities are recomputed."""
+    fades in and out without a jolt. Bones and rotations are untouched; velocities are recomputed.
+    where (B,) bool limits the correction to some bodies."""
     B, N, _ = seg.shape
     u0, u = unpack(x0), unpack(seg)
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
@@ -111,6 +139,8 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0
         return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
 
     c = ramp(h, *height) * ramp(v, *speed)  # (B, N, 2)
+    if where is not None:
+        c = c * where.to(c.dtype)[:, None, None]
     d = -(c[..., None] * step).sum(2) / c.sum(2, keepdim=True).clamp(min=1.0)  # (B, N, 2)
     off = torch.zeros(B, N, 3, dtype=seg.dtype)
     off[..., [0, 2]] = d.cumsum(1)

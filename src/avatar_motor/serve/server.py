@@ -141,8 +141,15 @@ class Server:
         from ..runtime.crowd import IMPULSE_PRESETS
         return {"type": "welcome", "version": P.VERSION, "fps": FPS, "model": self.world.motor.name,
                 "joint_names": JOINT_NAMES, "parents": PARENTS, "presets": sorted(IMPULSE_PRESETS),
-                "commands": P.COMMANDS, "avatars": sorted(self.world.crowd.avatars),
+                "commands": P.COMMANDS, "avatars": sorted(self.world.crowd.avatars), "adaptor": self._adaptor_info(),
                 "licence": self.world.motor.config.get("licence", "")}
+
+    def _adaptor_info(self) -> dict | None:
+        """What the loaded adaptor controls, so a client can offer its labels (or a target)."""
+        ad = self.world.crowd.adaptor
+        if ad is None:
+            return None
+        return {"control": ad.cfg.control, "labels": list(ad.cfg.labels), "kind": ad.cfg.kind}
 
     async def _handle(self, client: Client, text: str) -> None:
         cid = None
