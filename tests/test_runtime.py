@@ -292,3 +292,15 @@ def test_a_steered_avatar_travels_with_the_processing_on(tmp_path):
     segs = [crowd.step_segment() for _ in range(8)]
     J = joints_of(torch.stack([torch.cat([s[i] for s in segs]) for i in ids]))
     assert float((J[:, -1, 0, 2] - J[:, 0, 0, 2]).mean()) > 1.0  # metres forward in 4 s
+
+
+def test_a_goal_behind_turns_the_avatar_around(tmp_path):
+    from avatar_motor.runtime.guidance import facing_of
+    crowd = Crowd(shipped_or_tiny(tmp_path), seed=1)
+    ids = [crowd.spawn(position=(3.0 * k, 0.0)) for k in range(4)]  # standing, facing +Z
+    for i in ids:
+        crowd.set_goal(i, (0.0, -1.0))
+    for _ in range(6):
+        out = crowd.step_segment()
+    z, _ = facing_of(torch.stack([out[i][-1] for i in ids]))
+    assert float(z[:, 2].mean()) < -0.5  # facing -Z after 3 s
