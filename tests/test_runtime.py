@@ -304,3 +304,13 @@ def test_a_goal_behind_turns_the_avatar_around(tmp_path):
         out = crowd.step_segment()
     z, _ = facing_of(torch.stack([out[i][-1] for i in ids]))
     assert float(z[:, 2].mean()) < -0.5  # facing -Z after 3 s
+
+
+def test_smoothing_width_can_differ_per_body():
+    from avatar_motor.runtime.processing import smooth_segment
+    x = walk_states()
+    x0, seg = x[:, 0], x[:, 1:].clone()
+    seg[..., 135:201] += torch.randn(seg[..., 135:201].shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.01
+    both = smooth_segment(x0, seg, torch.tensor([0.0, 2.0], dtype=torch.float64))
+    assert torch.allclose(joints_of(both[:1]), joints_of(seg[:1]), atol=1e-12)  # sigma 0: untouched
+    assert torch.allclose(both[1:], smooth_segment(x0[1:], seg[1:], 2.0), atol=1e-12)

@@ -17,7 +17,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
-from ..data.motion_state import SLICES, STATE_DIM, canonical_transform, apply_transform, pack
+from ..data.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, facing_of, move_loss_and_grad, path_loss_and_grad
 from .processing import fit_rotations, fuse_velocities, inertialize, lock_feet, reproject, smooth_segment, snap_to_ground
@@ -50,6 +50,7 @@ class RuntimeConfig:
     inertialize: bool = True
     inertia_halflife: float = 0.2  # 0.1 measured jerkier at the joins and more skating
     smooth_sigma: float = 1.25  # temporal low-pass of each segment, frames (0 = off); our addition
+    still_sigma: float = 3.0  # the low-pass of a nearly still body (speed-adaptive, One-Euro-like)
     lock_feet: bool = True  # planted feet do not slide: root motion corrected from foot contacts (not under gradient speed guidance); our addition
     fit_rotations: bool = False  # rotations re-aimed at the generated joint locations; our addition (measured: naturalness 6.45 -> 7.62, so off)
     fuse_velocity: float = 3.0  # weight of the predicted velocities in the joint locations (0 = off); our addition
@@ -312,7 +313,7 @@ class Crowd:
             gliding = cfg.move_weight > 0 or cfg.path_weight > 0
             seg = lock_feet(x0c, seg, where=torch.tensor([v is None or not gliding for v in job["v_goal"]]))
         if cfg.smooth_sigma > 0:
-            seg = smooth_segment(x0c, seg, cfg.smooth_sigma)
+            seg = smooth_segment(x0c, seg, self._smoothing(x0c, seg))
         if cfg.snap:
             seg = snap_to_ground(seg)
         if cfg.inertialize:
@@ -344,6 +345,16 @@ class Crowd:
             scale = torch.tensor([1.0 if tg is not None else 0.0 for tg in job["targets"]])
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
+
+    def _smoothing(self, x0c: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
+        """Per-body smoothing width: smooth_sigma when moving, up to still_sigma for a body that is
+        nearly still (mean joint speed below 0.1 m/s, ramping up to 0.5), like a One-Euro filter: the
+        network's residual wobble is what a still body shows most, and real idling is very still."""
+        cfg = self.cfg
+        J = torch.cat((x0c[:, None], seg), 1)[..., SLICES["joints"]].reshape(len(seg), -1, 22, 3)
+        speed = ((J[:, 1:] - J[:, :-1]).norm(dim=-1).mean((1, 2)) * FPS)
+        still = ((0.5 - speed) / 0.4).clamp(0.0, 1.0)
+        return cfg.smooth_sigma + max(0.0, cfg.still_sigma - cfg.smooth_sigma) * still
 
     def commit(self, job, seg_w: torch.Tensor) -> None:
         """Append generated frames, unless a command interrupted the avatar meanwhile."""

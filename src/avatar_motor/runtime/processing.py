@@ -79,19 +79,21 @@ def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
     return past
 
 
-def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float = 1.0) -> torch.Tensor:
+def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Tensor = 1.0) -> torch.Tensor:
     """Temporal low-pass of a generated segment (our addition to PRIMAL's processing): a Gaussian
-    of `sigma` frames along time over root position, rotations (in 6D, re-orthonormalized) and joint
-    locations. In front of the segment stands x0's past continued at x0's velocity, so the join
-    keeps its speed; the end is point-reflected. The network's x0 estimate keeps a little of the last
-    step's noise; at 30 fps that is mm-scale jitter which reads as foot skating. Velocities are
-    recomputed afterwards."""
-    if sigma <= 0:
-        return seg
+    of `sigma` frames (a number, or one per body (B,)) along time over root position, rotations (in
+    6D, re-orthonormalized) and joint locations. In front of the segment stands x0's past continued
+    at x0's velocity, so the join keeps its speed; the end is point-reflected. The network's x0
+    estimate keeps a little of the last step's noise; at 30 fps that is mm-scale jitter which reads
+    as foot skating. Velocities are recomputed afterwards."""
     B, N, D = seg.shape
-    r = max(1, int(math.ceil(2.5 * sigma)))
-    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=seg.dtype) / sigma) ** 2)
-    k = k / k.sum()
+    sig = torch.as_tensor(sigma, dtype=seg.dtype).expand(B)
+    if float(sig.max()) <= 0:
+        return seg
+    r = max(1, int(math.ceil(2.5 * float(sig.max()))))
+    t = torch.arange(-r, r + 1, dtype=seg.dtype)
+    k = torch.exp(-0.5 * (t / sig[:, None].clamp_min(1e-3)) ** 2)  # (B, 2r + 1); sigma 0 -> a delta
+    k = k / k.sum(1, keepdim=True)
     pad_front = torch.cat((_history(x0, r - 1), x0[:, None]), 1) if r > 1 else x0[:, None]
     # the end point-reflected (2 x_N - x_{N-k}): continues the segment's trend, where a mirror
     # image would bring every segment to a halt at its last frame
@@ -100,7 +102,7 @@ def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float = 1.0) -> t
         mirror = torch.cat((mirror, seg[:, :1].expand(B, r - mirror.shape[1], D)), 1)
     pad_back = 2 * seg[:, -1:] - mirror
     full = torch.cat((pad_front, seg, pad_back), 1)  # (B, N + 2r, D)
-    out = torch.nn.functional.conv1d(full.transpose(1, 2).reshape(B * D, 1, -1), k.view(1, 1, -1)).reshape(B, D, N).transpose(1, 2)
+    out = torch.einsum("bndk,bk->bnd", full.unfold(1, 2 * r + 1, 1), k)
     u = unpack(out)
     prev = torch.cat((x0[:, None], out[:, :-1]), 1)
     J_prev = prev[..., SLICES["joints"]].reshape(B, N, 22, 3)
