@@ -140,8 +140,30 @@ def test_adaptation_evals_run_on_tiny_models(tmp_path):
     enc = train_encoder(ds, "content", ["walk", "wave"], seconds=1.0, steps=5)
     init, shapes = ds.sample(2, torch.Generator().manual_seed(0))
     ad = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["walk", "wave"])).eval()
-    rows = eval_actions(motor, {"ours": ad}, enc, init[:, 0], shapes, ["walk", "wave"], seconds=1.0)
-    assert rows[0]["method"] == "ours" and 0 <= rows[0]["R_precision"] <= 1
+    rows, rollouts = eval_actions(motor, {"base": None, "ours": ad}, enc, init[:, 0], shapes, ["walk", "wave"], seconds=1.0)
+    assert [r["method"] for r in rows] == ["base", "ours"] and 0 <= rows[1]["R_precision"] <= 1
+    assert rollouts["ours"]["wave"].shape == (2, 31, 267)
     reach = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
-    rows = eval_reach(motor, {"ours": reach}, init[:, 0], shapes, seconds=0.5)
-    assert rows[0]["min_dist_m"] > 0
+    rows, paths = eval_reach(motor, {"base": None, "ours": reach}, init[:, 0], shapes, seconds=0.5)
+    assert rows[1]["min_dist_m"] > 0 and paths["ours"].shape == (8, 2, 16, 2)
+    from avatar_motor.viz import label_grid, target_paths
+    from avatar_motor.eval.adaptation import TARGETS, canonical_joints
+    label_grid({k: [canonical_joints(X)[0].reshape(-1, 22, 3).numpy()] for k, X in rollouts["ours"].items()}, tmp_path / "grid.png")
+    target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, tmp_path / "paths.png")
+    assert (tmp_path / "grid.png").stat().st_size > 1000 and (tmp_path / "paths.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("kind", ["controlnet", "omni", "finetune"])
+def test_scale_per_row_as_the_runtime_passes_it(kind):
+    # the crowd passes one scale per avatar (B, 1, 1): 0 where no label is set
+    base = base_net()
+    m = AdaptedDenoiser(base, AdaptorConfig(kind=kind, labels=["a", "b"])).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.01)  # an adaptor that changes the output (zero projections no longer zero)
+    t, x, x0 = inputs()
+    y = torch.tensor([0, 1, 1])
+    out = m(t, x, x0, y, scale=torch.tensor([0.0, 1.0, 2.0]).view(3, 1, 1))
+    assert out.shape == x.shape
+    for k, s in enumerate([0.0, 1.0, 2.0]):
+        assert torch.allclose(out[k], m(t[k:k + 1], x[k:k + 1], x0[k:k + 1], y[k:k + 1], scale=s)[0], atol=1e-5)

@@ -93,7 +93,8 @@ class AdaptedDenoiser(nn.Module):
         cond = base.condition(t, x0)
         e = self.control_embedding(y, drop)
         if self.cfg.kind == "finetune":
-            cond = cond + scale * e
+            # scale: a number or one per row (B, 1, 1) as the runtime passes it
+            cond = cond + (scale.reshape(-1, 1) if torch.is_tensor(scale) else scale) * e
             h = base.tokens(x_t, cond)
             for blk in base.blocks:
                 h = blk(h, cond)
