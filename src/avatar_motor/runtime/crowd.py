@@ -1,9 +1,11 @@
 """Avatars and crowds: PRIMAL's Algorithm 1 for many bodies in one batched forward pass.
 
 One segment per step (for the avatars whose queue of frames ran out):
-  1 canonicalize the initial state (+ optional joint re-projection)
+  1 canonicalize the initial state (+ optional joint re-projection); impulses and steering
+    impulses go into the velocities the network is conditioned on
   2 condition embedding (inside the denoiser)
-  3 reverse diffusion with optional guidance; snap to ground; inertialization
+  3 reverse diffusion with optional gradient guidance; then our test-time processing: velocity
+    fusion, foot locking, speed-adaptive smoothing, snap to ground, inertialization
   4 back to world, queue the 15 new frames.
 A command (impulse, push, goal) takes effect at the next frame: the avatar's queued frames are
 dropped and its next segment starts from the frame it is showing now.
