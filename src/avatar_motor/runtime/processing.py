@@ -22,6 +22,13 @@ def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _pack_moving(x0: torch.Tensor, root_pos, root_rot, local_rot, joints: torch.Tensor) -> torch.Tensor:
+    """Pack a segment (B, N, ...) whose velocities are the backward differences of its joints,
+    the first one taken from the initial state x0 (B, 267)."""
+    prev = torch.cat((unpack(x0).joints[:, None], joints[:, :-1]), 1)
+    return pack(root_pos, root_rot, local_rot, joints, (joints - prev) * FPS)
+
+
 def fit_rotations(seg: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     """Joint rotations that point every bone at the generated joint locations (our addition: the
     inverse of PRIMAL's re-projection). The network's locations are its better channel (fused with
@@ -64,9 +71,8 @@ def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) ->
     b[:, 0] += u0.joints.reshape(B, 66)  # the first difference is taken from x0
     rhs = u.joints.reshape(B, N, 66) + weight * D.T @ b
     joints = torch.linalg.solve(A, rhs).reshape(B, N, 22, 3)
-    prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
     root_pos = u.root_pos + (joints[:, :, 0] - u.joints[:, :, 0])
-    return pack(root_pos, u.root_rot, u.local_rot, joints, (joints - prev) * FPS)
+    return _pack_moving(x0, root_pos, u.root_rot, u.local_rot, joints)
 
 
 def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
@@ -88,11 +94,11 @@ def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Ten
     at x0's velocity, so the join keeps its speed; the end is point-reflected. The network's x0
     estimate keeps a little of the last step's noise; at 30 fps that is mm-scale jitter which reads
     as foot skating. Velocities are recomputed afterwards."""
-    B, N, D = seg.shape
+    B, _, D = seg.shape
     sig = torch.as_tensor(sigma, dtype=seg.dtype).expand(B)
     if float(sig.max()) <= 0:
         return seg
-    r = max(1, int(math.ceil(2.5 * float(sig.max()))))
+    r = max(1, math.ceil(2.5 * float(sig.max())))
     t = torch.arange(-r, r + 1, dtype=seg.dtype)
     k = torch.exp(-0.5 * (t / sig[:, None].clamp_min(1e-3)) ** 2)  # (B, 2r + 1); sigma 0 -> a delta
     k = k / k.sum(1, keepdim=True)
@@ -106,10 +112,8 @@ def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Ten
     full = torch.cat((pad_front, seg, pad_back), 1)  # (B, N + 2r, D)
     out = torch.einsum("bndk,bk->bnd", full.unfold(1, 2 * r + 1, 1), k)
     u = unpack(out)
-    prev = torch.cat((x0[:, None], out[:, :-1]), 1)
-    J_prev = prev[..., SLICES["joints"]].reshape(B, N, 22, 3)
     # re-orthonormalize rotations through 6D -> matrix -> 6D (pack does it) and difference velocities
-    return pack(u.root_pos, u.root_rot, u.local_rot, u.joints, (u.joints - J_prev) * FPS)
+    return _pack_moving(x0, u.root_pos, u.root_rot, u.local_rot, u.joints)
 
 
 def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.Tensor:
@@ -149,8 +153,7 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0
     off = torch.zeros(B, N, 3, dtype=seg.dtype)
     off[..., [0, 2]] = d.cumsum(1)
     joints = u.joints + off[:, :, None]
-    prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
-    return pack(u.root_pos + off, u.root_rot, u.local_rot, joints, (joints - prev) * FPS)
+    return _pack_moving(x0, u.root_pos + off, u.root_rot, u.local_rot, joints)
 
 
 def _damping(halflife: float) -> float:
@@ -199,6 +202,4 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     off_r = rot.matrix_to_axis_angle(R0 @ R_back.transpose(-1, -2))  # (B, 22, 3)
     d_r = spring_decay(off_r[:, None], torch.zeros_like(off_r[:, None]), halflife, t[..., None])
     R = rot.axis_angle_to_matrix(d_r) @ R
-    prev = torch.cat((u0.joints[:, None], joints[:, :-1]), 1)
-    vel = (joints - prev) * FPS
-    return pack(root_pos, R[:, :, 0], R[:, :, 1:], joints, vel)
+    return _pack_moving(x0, root_pos, R[:, :, 0], R[:, :, 1:], joints)
