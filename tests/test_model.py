@@ -159,6 +159,34 @@ def test_resume_is_exact(tmp_path, fixture_cache):
     assert (tmp_path / "b" / "loss.png").exists() and (tmp_path / "b" / "metrics.jsonl").exists()
 
 
+def test_warm_start_takes_the_weights_and_checks_the_architecture(tmp_path, fixture_cache):
+    from avatar_motor.train.trainer import Trainer
+    Trainer(_cfg(tmp_path / "a", fixture_cache, steps=3), progress=False).run()
+    src = load_checkpoint(tmp_path / "a" / "checkpoint")
+    warm = Trainer(_cfg(tmp_path / "b", fixture_cache, init=str(tmp_path / "a" / "checkpoint")), progress=False)
+    assert warm.step == 0
+    for k, v in src.net.state_dict().items():
+        assert torch.equal(warm.net.state_dict()[k], v) and torch.equal(warm.ema.shadow[k], v)
+    with pytest.raises(ValueError, match="same architecture"):
+        Trainer(_cfg(tmp_path / "c", fixture_cache, init=str(tmp_path / "a" / "checkpoint"),
+                     model=DenoiserConfig(width=32, depth=1, heads=2, ff=64)), progress=False)
+
+
+def test_normalisation_statistics_follow_a_reimported_cache(tmp_path, fixture_cache):
+    from avatar_motor.data.cache import MotionCache
+    from avatar_motor.data.dataset import SegmentConfig, SegmentDataset, load_or_compute_stats, stats_path
+    ds = SegmentDataset([MotionCache.load(fixture_cache)], SegmentConfig(split="all"))
+    first = load_or_compute_stats(ds, [fixture_cache])
+    p = stats_path([fixture_cache])
+    doctored = json.loads(p.read_text())
+    doctored["mean"] = [0.0] * len(doctored["mean"])
+    p.write_text(json.dumps(doctored))
+    assert float(load_or_compute_stats(ds, [fixture_cache]).mean.abs().max()) == 0  # same cache: the file is used
+    st = fixture_cache.stat()
+    os.utime(fixture_cache, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # the cache was written again
+    assert torch.equal(load_or_compute_stats(ds, [fixture_cache]).mean, first.mean)
+
+
 def test_ddp_two_processes_equal_one_with_double_batch(tmp_path, fixture_cache):
     """2 gloo processes with batch 8 each (global 16) take the same steps as 1 process with 16."""
     script = tmp_path / "run.py"

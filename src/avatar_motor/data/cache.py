@@ -27,7 +27,7 @@ import numpy as np
 from ..io.bvh import BVHError, read_bvh
 from .retarget import resample, retarget
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: twist-canonical retargeting
 _BANDAI = re.compile(r"dataset-(?P<part>\d+)_(?P<content>[a-z\-]+)_(?P<style>[a-z\-]+)_(?P<id>\d+)$")
 
 

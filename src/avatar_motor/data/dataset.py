@@ -146,15 +146,23 @@ def stats_path(cache_paths: list[Path]) -> Path:
     return Path(cache_paths[0]).with_name(f"{names}.stats.json")
 
 
+def _fingerprint(cache_paths: list[Path]) -> list[list]:
+    """What the statistics were computed from: a re-imported cache changes its size or time."""
+    return [[Path(p).name, Path(p).stat().st_size, Path(p).stat().st_mtime_ns] for p in sorted(cache_paths)]
+
+
 def load_or_compute_stats(ds: SegmentDataset, cache_paths: list[Path]) -> Normalizer:
     p = stats_path(cache_paths)
+    sources = _fingerprint(cache_paths)
     if p.exists():
         try:
-            return Normalizer.from_dict(json.loads(p.read_text()))
+            d = json.loads(p.read_text())
+            if d.get("sources") == sources:
+                return Normalizer.from_dict(d)
         except (ValueError, json.JSONDecodeError):
-            pass  # recompute below and overwrite the bad file
+            pass  # recompute below and overwrite the bad or stale file
     norm = Normalizer.compute(ds)
     tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(norm.to_dict()))
+    tmp.write_text(json.dumps({**norm.to_dict(), "sources": sources}))
     tmp.replace(p)
     return norm

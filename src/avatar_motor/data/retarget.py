@@ -4,6 +4,8 @@ Method: every canonical joint takes the *world* rotation of its source joint tim
 rest correction C_j, chosen so that the canonical bone to each child points exactly where the
 source bone points (Kabsch over the children for branching joints). Bone directions are thus
 preserved in the world whatever the two rest poses are; local angles are never copied.
+The twist left free by a single child bone is set so that the clip's mean local twist is zero
+(`_zero_mean_twist`), which makes left and right (and mirrored poses) share one convention.
 Canonical joints the source lacks (e.g. a third spine joint) take the slerp of their neighbours'
 world rotations, spreading the bend. The root trajectory is scaled by the ratio of leg lengths,
 and each clip is lifted so that its feet rest on the ground.
@@ -68,6 +70,7 @@ NAMINGS: dict[str, dict[str, str | tuple[str, str]]] = {
         "{side}_collar": "{s}_Collar", "{side}_shoulder": "{s}_Shoulder", "{side}_elbow": "{s}_Elbow", "{side}_wrist": "{s}_Wrist",
     }),
 }
+SMPL_FRAMES = ("smpl", "smpl_short")  # namings whose joint frames already are the canonical ones
 _PREFIX = re.compile(r"^(mixamorig\d*[:_]|.*:)")
 
 # direction of a leaf joint's (virtual) child bone in the canonical rest pose
@@ -201,6 +204,25 @@ class Retargeted:
     info: dict = field(default_factory=dict)
 
 
+def _zero_mean_twist(G: torch.Tensor, C: torch.Tensor, parent: torch.Tensor, bone: torch.Tensor) -> torch.Tensor:
+    """The rest correction C with its twist about the canonical bone chosen so that, over the clip,
+    the canonical local rotation is on average the smallest rotation (no twist) that aims the bone
+    where it points. A rest pose only fixes a bone's direction, and many skeletons (Bandai's among
+    them) keep per-joint frames whose twist is arbitrary: taken as is, left and right joints get
+    unrelated twist conventions, so a mirrored pose is far from any real one in rotation space.
+    G: (F, 3, 3) source world rotations; C: rest correction aiming `bone` right; parent: (F, 3, 3)
+    canonical world rotations of the parent."""
+    aim = G @ (C @ bone)  # (F, 3): the bone's world direction, whatever the twist
+    swing = rot.rotation_between(bone.expand_as(aim), (parent.transpose(-1, -2) @ aim[..., None])[..., 0])
+    target = parent @ swing  # zero-twist world rotations
+    U, _, Vt = torch.linalg.svd((G.transpose(-1, -2) @ target).sum(0))  # nearest rotation to the mean
+    if torch.linalg.det(U @ Vt) < 0:
+        U = U.clone()
+        U[:, -1] *= -1
+    C_new = U @ Vt
+    return rot.rotation_between(C_new @ bone, C @ bone) @ C_new  # keep the bone exactly on its source
+
+
 def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, ground: str = "auto") -> Retargeted:
     """ground="auto" lifts the clip so its feet rest on the ground (skeletons differ in where their
     toe joint sits); "keep" keeps the file's own heights (files this project wrote)."""
@@ -226,6 +248,8 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
     can_off = rest_offsets(None, torch.float64)
     children = {j: [k for k in range(NUM_JOINTS) if PARENTS[k] == j] for j in range(NUM_JOINTS)}
     C = [None] * NUM_JOINTS
+    bone_dir: list[torch.Tensor | None] = [None] * NUM_JOINTS
+    inherit: set[int] = set()
     for j in range(NUM_JOINTS):
         name = JOINT_NAMES[j]
         idx = m.joints[name]
@@ -241,7 +265,7 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
             elif idx[-1] in b.end_sites:
                 v = torch.from_numpy(A @ b.end_sites[idx[-1]] * scale)
             if v is None or v.norm() < 1e-6:
-                C[j] = C[PARENTS[j]]
+                inherit.add(j)  # no bone to aim: the leaf keeps its parent's (final) correction
                 continue
             can_dirs, src_dirs = torch.tensor([_LEAF_DIR[name]], dtype=torch.float64), v[None]
         if (src_dirs.norm(dim=-1) < 1e-9).any():
@@ -249,10 +273,18 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
                            "Check the mapping")
         can_dirs, src_dirs = rot.normalize(can_dirs), rot.normalize(src_dirs)
         if len(kids) >= 2:
-            C[j] = rot.kabsch(can_dirs, src_dirs)
+            C[j] = rot.kabsch(can_dirs, src_dirs)  # several children fix the whole rotation
         else:
             C[j] = rot.rotation_between(can_dirs[0], src_dirs[0])
-    glob = torch.stack([src_rot(m.joints[n]) @ C[j] for j, n in enumerate(JOINT_NAMES)], 1)  # (F, 22, 3, 3)
+            bone_dir[j] = can_dirs[0]  # one bone: its twist is still free
+    glob = torch.zeros(P_w.shape[0], NUM_JOINTS, 3, 3, dtype=torch.float64)
+    for j, n in enumerate(JOINT_NAMES):  # parents before children
+        G = src_rot(m.joints[n])
+        if j in inherit:
+            C[j] = C[PARENTS[j]]
+        elif j and bone_dir[j] is not None and m.name not in SMPL_FRAMES:
+            C[j] = _zero_mean_twist(G, C[j], glob[:, PARENTS[j]], bone_dir[j])
+        glob[:, j] = G @ C[j]
     local = glob[:, 1:].clone()
     for j in range(1, NUM_JOINTS):
         local[:, j - 1] = glob[:, PARENTS[j]].transpose(-1, -2) @ glob[:, j]

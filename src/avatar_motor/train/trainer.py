@@ -50,6 +50,7 @@ class TrainConfig:
     seed: int = 0
     threads: int = 0  # 0 = torch default
     diffusion_steps: int = 50
+    init: str = ""  # warm start: a checkpoint folder whose weights (same model config) start the run
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     name: str = "avatar-motor-base"
@@ -130,6 +131,8 @@ class Trainer:
         self.norm = load_or_compute_stats(self.ds, self.cache_paths)
         torch.manual_seed(cfg.seed)
         self.net = Denoiser(cfg.model)
+        if cfg.init:
+            self._warm_start(cfg.init)
         self.diffusion = Diffusion(cfg.diffusion_steps)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.ema = EMA(self.net, cfg.ema_decay)
@@ -141,6 +144,16 @@ class Trainer:
         self._resume()
 
     # ------------------------------------------------------------ state
+    def _warm_start(self, folder: str) -> None:
+        """Start from a trained checkpoint's weights (not its optimizer or step count): the data's
+        normalisation is recomputed, so a model can follow re-imported data without starting over."""
+        from ..model.checkpoint import load_checkpoint
+        motor = load_checkpoint(folder)
+        if motor.net.cfg != self.cfg.model:
+            raise ValueError(f"init checkpoint {folder} has model {motor.net.cfg}, the config asks for {self.cfg.model}; "
+                             "warm start needs the same architecture")
+        self.net.load_state_dict(motor.net.state_dict())
+
     def _resume(self) -> None:
         st = self.out / "train_state"
         if not (st / "state.json").exists():
