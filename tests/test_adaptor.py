@@ -62,6 +62,11 @@ def test_targets_and_saving(tmp_path):
     assert not any(k.startswith("base.") for k in m.adaptor_state())  # saved without the base
     with pytest.raises(ValueError, match="trained on base model"):
         load_adaptor(tmp_path / "a", base_net(), "other")
+    retrained = base_net()
+    with torch.no_grad():
+        retrained.out.bias.add_(0.1)  # same name, other weights
+    with pytest.raises(ValueError, match="retrain the adaptor"):
+        load_adaptor(tmp_path / "a", retrained, "base-x")
     r = rescale_target(torch.tensor([[3.0, 4.0]]))
     assert abs(float(r.norm()) - 2 * (1 - math.exp(-5.0))) < 1e-6
 

@@ -16,9 +16,11 @@ Adaptor weights are saved on their own (safetensors + JSON), so many adaptors sh
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import os
 import shutil
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -114,6 +116,16 @@ class AdaptedDenoiser(nn.Module):
         return {k: v for k, v in self.state_dict().items() if self.cfg.kind == "finetune" or not k.startswith("base.")}
 
 
+def base_fingerprint(net: Denoiser) -> str:
+    """Identifies the base weights an adaptor was trained on (a retrained base keeps its name).
+    Taken over float16 values, so a training checkpoint and its shipped float16 copy agree."""
+    h = hashlib.sha1()
+    for k, v in sorted(net.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().to(torch.float16).contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
 def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, info: dict | None = None) -> Path:
     folder = Path(folder)
     tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
@@ -121,7 +133,8 @@ def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, inf
     tmp.mkdir(parents=True)
     save_file({k: v.detach().contiguous() for k, v in model.adaptor_state().items()}, str(tmp / "adaptor.safetensors"))
     (tmp / "adaptor.json").write_text(json.dumps({"format": ADAPTOR_FORMAT, "adaptor": asdict(model.cfg),
-                                                  "base_model": base_name, **(info or {})}, indent=1))
+                                                  "base_model": base_name, "base_fingerprint": base_fingerprint(model.base),
+                                                  **(info or {})}, indent=1))
     if folder.exists():
         shutil.rmtree(folder)
     tmp.rename(folder)
@@ -139,6 +152,12 @@ def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = Non
         raise ValueError(f"{folder}: format {meta.get('format')!r} is not {ADAPTOR_FORMAT!r}")
     if base_name is not None and meta.get("base_model") != base_name:
         raise ValueError(f"{folder}: adaptor was trained on base model {meta.get('base_model')!r}, not {base_name!r}")
+    if "base_fingerprint" not in meta:
+        warnings.warn(f"{folder}: the adaptor does not record which base weights it was trained on (older format); "
+                      "if the base was retrained since, retrain the adaptor", stacklevel=2)
+    elif meta["base_fingerprint"] != base_fingerprint(base):
+        raise ValueError(f"{folder}: adaptor was trained on other weights of base model {meta.get('base_model')!r} "
+                         "(the base was retrained since); retrain the adaptor with 'avatar-motor adapt' on this base")
     model = AdaptedDenoiser(base, AdaptorConfig(**meta["adaptor"]))
     missing, unexpected = model.load_state_dict(weights, strict=False)
     expected = set(model.adaptor_state())
