@@ -148,7 +148,8 @@ def stats_path(cache_paths: list[Path]) -> Path:
 
 def _fingerprint(cache_paths: list[Path]) -> list[list]:
     """What the statistics were computed from: a re-imported cache changes its size or time."""
-    return [[Path(p).name, Path(p).stat().st_size, Path(p).stat().st_mtime_ns] for p in sorted(cache_paths)]
+    stats = [(Path(p).name, Path(p).stat()) for p in sorted(cache_paths)]
+    return [[name, st.st_size, st.st_mtime_ns] for name, st in stats]
 
 
 def load_or_compute_stats(ds: SegmentDataset, cache_paths: list[Path]) -> Normalizer:

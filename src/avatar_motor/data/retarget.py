@@ -215,11 +215,8 @@ def _zero_mean_twist(G: torch.Tensor, C: torch.Tensor, parent: torch.Tensor, bon
     aim = G @ (C @ bone)  # (F, 3): the bone's world direction, whatever the twist
     swing = rot.rotation_between(bone.expand_as(aim), (parent.transpose(-1, -2) @ aim[..., None])[..., 0])
     target = parent @ swing  # zero-twist world rotations
-    U, _, Vt = torch.linalg.svd((G.transpose(-1, -2) @ target).sum(0))  # nearest rotation to the mean
-    if torch.linalg.det(U @ Vt) < 0:
-        U = U.clone()
-        U[:, -1] *= -1
-    C_new = U @ Vt
+    mean = (G.transpose(-1, -2) @ target).sum(0)
+    C_new = rot.kabsch(torch.eye(3, dtype=mean.dtype), mean.T)  # the rotation nearest to the mean
     return rot.rotation_between(C_new @ bone, C @ bone) @ C_new  # keep the bone exactly on its source
 
 

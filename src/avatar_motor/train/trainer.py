@@ -125,13 +125,14 @@ class Trainer:
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         self.out = Path(cfg.out)
+        self.state_dir = self.out / "train_state"  # what resuming reads
         self.cache_paths = resolve_caches(cfg.data)
         caches = [MotionCache.load(p) for p in self.cache_paths]
         self.ds = SegmentDataset(caches, cfg.segment)
         self.norm = load_or_compute_stats(self.ds, self.cache_paths)
         torch.manual_seed(cfg.seed)
         self.net = Denoiser(cfg.model)
-        if cfg.init:
+        if cfg.init and not (self.state_dir / "state.json").exists():  # a resumed run has its own weights
             self._warm_start(cfg.init)
         self.diffusion = Diffusion(cfg.diffusion_steps)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -155,7 +156,7 @@ class Trainer:
         self.net.load_state_dict(motor.net.state_dict())
 
     def _resume(self) -> None:
-        st = self.out / "train_state"
+        st = self.state_dir
         if not (st / "state.json").exists():
             return
         meta = json.loads((st / "state.json").read_text())
@@ -172,7 +173,7 @@ class Trainer:
     def save_state(self) -> None:
         if self.rank != 0:
             return
-        st = self.out / "train_state"
+        st = self.state_dir
         tmp = self.out / "train_state.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
