@@ -1,3 +1,4 @@
+import json
 import math
 
 import pytest
@@ -94,12 +95,15 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
     import_motion(src, name="labelled", progress=False, workers=1)
     args = ["adapt", task, "--model", str(tmp_path / "tiny"), "--data", "labelled", "--steps", "3", "--batch", "4",
             "--out", str(tmp_path / "ad"), "--split", "all"]
+    if task == "actions":
+        args += ["--swap-initial", "1.0"]  # every window of another class's state swaps: the path runs
     assert main(args) == 0
     m = load_adaptor(tmp_path / "ad" / "adaptor", load_checkpoint(tmp_path / "tiny").net)
     assert m.cfg.control == ("label" if task == "actions" else "target")
     if task == "actions":
         assert m.cfg.labels == ["walk", "wave"]
-        assert main(args[:-2] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
+        assert json.loads((tmp_path / "ad" / "adapt_config.json").read_text())["swap_initial"] == 1.0
+        assert main(args[:-4] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
 
 
 def test_runtime_labels_and_targets(tmp_path):

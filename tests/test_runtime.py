@@ -314,3 +314,18 @@ def test_smoothing_width_can_differ_per_body():
     both = smooth_segment(x0, seg, torch.tensor([0.0, 2.0], dtype=torch.float64))
     assert torch.allclose(joints_of(both[:1]), joints_of(seg[:1]), atol=1e-12)  # sigma 0: untouched
     assert torch.allclose(both[1:], smooth_segment(x0[1:], seg[1:], 2.0), atol=1e-12)
+
+
+@pytest.mark.parametrize("with_body, expected", [(0.0, (-1.0, 0.0)), (1.0, (0.0, 1.0)), (0.5, (-0.7071, 0.7071))])
+def test_steering_velocity_turns_with_the_body(motor, with_body, expected):
+    # a standing body facing +Z told to go right (-X): steer_with_body rotates the trunk's steering
+    # velocity from the goal back toward where the body faces, by that fraction of the angle
+    from avatar_motor.runtime.crowd import RuntimeConfig, STEER_JOINTS
+    from avatar_motor.data.motion_state import SLICES
+    crowd = Crowd(motor, RuntimeConfig(steer_impulse=1.0, turn_impulse=0.0, steer_with_body=with_body))
+    x0 = standing_state()[None].double()
+    x = x0.clone()
+    goal = torch.tensor([-1.0, 0.0, 0.0])
+    crowd._steer(x, [goal], [goal], torch.eye(3, dtype=torch.float64)[None])
+    dv = (x - x0)[0, SLICES["velocities"]].view(22, 3)[STEER_JOINTS].mean(0)
+    assert torch.allclose(dv[[0, 2]].float(), torch.tensor(expected), atol=1e-3)

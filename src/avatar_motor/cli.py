@@ -358,7 +358,8 @@ def _adapt(a) -> int:
     cfg = AdaptConfig(base=a.model, data=a.data or ["dataset-1"], out=a.out, task=a.task, kind=a.kind,
                       label_key=a.label_key, classes=[c for c in (a.classes or "").split(",") if c],
                       steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split,
-                      scratch=a.scratch, clips_per_class=a.clips_per_class, max_minutes=a.max_minutes, lr=a.lr)
+                      scratch=a.scratch, clips_per_class=a.clips_per_class, max_minutes=a.max_minutes, lr=a.lr,
+                      swap_initial=a.swap_initial)
     path = adapt(cfg)
     print(f"adaptor written to {path}")
     return 0
@@ -378,7 +379,7 @@ def _named_adaptors(specs: list[str], motor):
 
 
 def _eval_adaptation(a) -> int:
-    from .eval.adaptation import TARGETS, eval_actions, eval_reach, format_rows, r_precision, train_encoder
+    from .eval.adaptation import TARGETS, eval_actions, eval_reach, format_confusion, format_rows, r_precision, train_encoder
     from .eval.control import initial_states
     from .model.checkpoint import load_checkpoint
     from .viz import label_grid, target_paths
@@ -420,6 +421,7 @@ def _eval_adaptation(a) -> int:
     rows, rollouts = eval_actions(motor, methods, enc, init, shapes, classes, a.seconds or 3.0, a.seed, cfg, a.label_scale)
     print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {a.seconds or 3.0:g} s, "
                       f"label scale {a.label_scale:g}", rows, ["R_precision", "ASR", "ANCR"]))
+    print(format_confusion(rows, classes))
     if a.png:
         from .eval.adaptation import canonical_joints
         shown = next(iter(ads))
@@ -478,6 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--seed", type=int, default=0)
     ad.add_argument("--out", default="runs/adapt")
     ad.add_argument("--scratch", action="store_true", help="baseline: train a fresh network (with --kind finetune)")
+    ad.add_argument("--swap-initial", type=float, default=0.0,
+                    help="fraction of windows conditioned on another window's initial state, so the label must carry the action (ours: 0.5)")
     ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
     ad.set_defaults(func=_adapt)
 

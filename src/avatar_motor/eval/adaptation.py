@@ -86,13 +86,17 @@ def train_encoder(ds: SegmentDataset, label_key: str, classes: list[str], second
 
 
 @torch.no_grad()
-def r_precision(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, y: torch.Tensor,
-                canonical: bool = False) -> float:
-    """Top-1 R-precision of motions X: world states (B, T, 267), or canonical windows if `canonical`."""
+def predict_labels(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, canonical: bool = False) -> torch.Tensor:
+    """The evaluator's label for motions X: world states (B, T, 267), or canonical windows if `canonical`."""
     J = X[..., SLICES["joints"]].float() if canonical else canonical_joints(X)
     emb = menc(J[:, :menc.frames])
-    pred = (emb @ lenc(torch.arange(lenc.embed.num_embeddings)).T).argmax(-1)
-    return float((pred == y).float().mean())
+    return (emb @ lenc(torch.arange(lenc.embed.num_embeddings)).T).argmax(-1)
+
+
+def r_precision(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, y: torch.Tensor,
+                canonical: bool = False) -> float:
+    """Top-1 R-precision: the fraction of motions whose nearest label embedding is y."""
+    return float((predict_labels(menc, lenc, X, canonical) == y).float().mean())
 
 
 def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int, cfg: RuntimeConfig) -> torch.Tensor:
@@ -121,8 +125,10 @@ def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: l
             per_label[label] = X
         X, y = torch.cat(Xs), torch.cat(ys)
         rollouts[name] = per_label
-        rows.append({"method": name, "R_precision": r_precision(menc, lenc, X, y), "ASR": M.asr(joints_of(X)),
-                     "ANCR": M.ancr(joints_of(X))})
+        pred = predict_labels(menc, lenc, X)
+        rows.append({"method": name, "R_precision": float((pred == y).float().mean()), "ASR": M.asr(joints_of(X)),
+                     "ANCR": M.ancr(joints_of(X)),
+                     "confusion": [[int(((y == c) & (pred == p)).sum()) for p in range(len(classes))] for c in range(len(classes))]})
     return rows, rollouts
 
 
@@ -150,6 +156,18 @@ def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0,
         paths[name] = torch.stack(local)
         rows.append({"method": name, "min_dist_m": float(torch.cat(dists).mean()), "ASR": M.asr(J), "ANCR": M.ancr(J)})
     return rows, paths
+
+
+def format_confusion(rows: list[dict], classes: list[str]) -> str:
+    """Per method: how many rollouts of each commanded label (row) the evaluator read as each label."""
+    out = []
+    for r in rows:
+        if r["method"] == "base":
+            continue  # the base ignores labels: its rows are all alike
+        out.append(f"{r['method']}: commanded (rows) vs recognised (columns)")
+        out.append(f"{'':12s} " + " ".join(f"{c[:9]:>9s}" for c in classes))
+        out += [f"{c[:12]:12s} " + " ".join(f"{v:9d}" for v in row) for c, row in zip(classes, r["confusion"])]
+    return "\n".join(out)
 
 
 def format_rows(title: str, rows: list[dict], keys: list[str]) -> str:
