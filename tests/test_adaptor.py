@@ -104,6 +104,14 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert m.cfg.labels == ["walk", "wave"]
         assert json.loads((tmp_path / "ad" / "adapt_config.json").read_text())["swap_initial"] == 1.0
         assert main(args[:-4] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
+        # Table A3 end to end: the evaluator, the table and the confusion matrix. Its initial states
+        # come from held-out clips: add one (a file name whose hash falls in the held-out split)
+        from avatar_motor.data.cache import is_held_out
+        held = next(f"dataset-9_walk_normal_{k:03d}.bvh" for k in range(1000) if is_held_out(f"dataset-9_walk_normal_{k:03d}.bvh"))
+        shutil.copy(FIXTURES / "walk_lafan1.bvh", src / held)
+        import_motion(src, name="labelled", progress=False, workers=1)
+        assert main(["eval", "actions", "--model", str(tmp_path / "tiny"), "--adaptors", f"ours={tmp_path / 'ad' / 'adaptor'}",
+                     "--data", "labelled", "--n", "2", "--seconds", "1", "--encoder-steps", "2"]) == 0
 
 
 def test_runtime_labels_and_targets(tmp_path):
