@@ -104,6 +104,7 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert m.cfg.labels == ["walk", "wave"]
         assert json.loads((tmp_path / "ad" / "adapt_config.json").read_text())["swap_initial"] == 1.0
         assert main(args[:-4] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
+        assert main(args[:-1] + ["1.5"]) == 2  # a swap fraction above 1
         # Table A3 end to end: the evaluator, the table and the confusion matrix. Its initial states
         # come from held-out clips: add one (a file name whose hash falls in the held-out split)
         from avatar_motor.data.cache import is_held_out

@@ -74,6 +74,8 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
 
     if cfg.task not in ("actions", "reach"):
         raise ValueError(f"task must be 'actions' or 'reach', got {cfg.task!r}")
+    if not 0.0 <= cfg.swap_initial <= 1.0:
+        raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
     torch.manual_seed(cfg.seed)
     motor = load_checkpoint(cfg.base)
     if cfg.scratch:
