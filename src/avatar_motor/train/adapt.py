@@ -102,6 +102,9 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr)
     gen = torch.Generator().manual_seed(cfg.seed)
     label_index = {c: k for k, c in enumerate(classes)}
+
+    def labels_of(clips: torch.Tensor) -> torch.Tensor:
+        return torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clips])
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "adapt_config.json").write_text(json.dumps(asdict(cfg), indent=1))
@@ -113,7 +116,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
             break
         x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
         if cfg.task == "actions":
-            y = torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clip])
+            y = labels_of(clip)
         else:
             y = target_of(x)
         xn = motor.norm.encode(x)
@@ -123,9 +126,11 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
             other = torch.randint(len(ds.window_starts), (cfg.batch,), generator=gen)
             swap = (torch.rand(cfg.batch, generator=gen) < cfg.swap_initial) & ~drop  # the null control keeps its state
             if cfg.task == "actions":  # only for a state of another class: a state of the commanded action is continued
-                swap &= torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in ds.window_clip[other]]) != y
-            xo, _ = ds.windows(ds.window_starts[other], gen, shapes=shapes)
-            x0n = torch.where(swap[:, None], motor.norm.encode(xo[:, 0]), x0n)
+                swap &= labels_of(ds.window_clip[other]) != y
+            if swap.any():  # build only the swapped windows: this is the training loop's hot path
+                xo, _ = ds.windows(ds.window_starts[other[swap]], gen, shapes=shapes[swap])
+                x0n = x0n.clone()
+                x0n[swap] = motor.norm.encode(xo[:, 0])
         t = torch.randint(motor.diffusion.T, (cfg.batch,), generator=gen)
         noise = torch.randn(xn[:, 1:].shape, generator=gen)
         x_t = motor.diffusion.q_sample(xn[:, 1:], t, noise)
