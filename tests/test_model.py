@@ -204,8 +204,13 @@ if tr.rank == 0:
 """)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     subprocess.run([sys.executable, str(script), str(tmp_path / "one")], check=True, env=env)
-    subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29533",
-                    str(script), str(tmp_path / "two")], check=True, env=env, capture_output=True)
+    import socket
+    with socket.socket() as s:  # a free port: a fixed one can be taken on a shared machine
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={port}",
+                        str(script), str(tmp_path / "two")], env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-4000:]  # the workers' own error, not just an exit status
     l1 = json.loads((tmp_path / "one.json").read_text())
     l2 = json.loads((tmp_path / "two.json").read_text())
     assert l1 == pytest.approx(l2, rel=1e-5)
