@@ -329,3 +329,28 @@ def test_steering_velocity_turns_with_the_body(motor, with_body, expected):
     crowd._steer(x, [goal], [goal], torch.eye(3, dtype=torch.float64)[None])
     dv = (x - x0)[0, SLICES["velocities"]].view(22, 3)[STEER_JOINTS].mean(0)
     assert torch.allclose(dv[[0, 2]].float(), torch.tensor(expected), atol=1e-3)
+
+
+def test_turning_toward_a_facing_goal_keeps_the_path_and_the_bones():
+    from avatar_motor.data.motion_state import facing_yaw
+    from avatar_motor.runtime.processing import turn_toward
+    x = walk_states()
+    x0, seg = x[:, 0], x[:, 1:]
+    N = seg.shape[1]
+    goal = facing_yaw(joints_of(seg[:, -1])) + torch.tensor([0.6, -3.0], dtype=seg.dtype)  # a small and a large turn
+    out = turn_toward(x0, seg, goal, max_rate=math.pi, tolerance=0.1)
+    yaw = facing_yaw(joints_of(out))
+    err = torch.atan2(torch.sin(goal - yaw[:, -1]), torch.cos(goal - yaw[:, -1]))
+    assert torch.allclose(err[0], torch.tensor(0.1, dtype=seg.dtype), atol=1e-9)  # turned up to the tolerance
+    limit = math.pi * N / FPS  # the large turn is capped at pi rad/s over the segment
+    turned = yaw[1, -1] - facing_yaw(joints_of(seg[1, -1]))
+    assert torch.allclose(torch.atan2(torch.sin(turned), torch.cos(turned)), torch.tensor(-limit, dtype=seg.dtype), atol=1e-9)
+    J, J_in = joints_of(out), joints_of(seg)
+    assert torch.allclose(J[..., 0, [0, 2]], J_in[..., 0, [0, 2]], atol=1e-12)  # the pelvis path is kept
+    from avatar_motor.body.skeleton import PARENTS
+
+    def bones(J):
+        return (J[..., 1:, :] - J[..., PARENTS[1:], :]).norm(dim=-1)
+    assert torch.allclose(bones(J), bones(J_in), atol=1e-12)
+    assert torch.allclose(unpack(out).local_rot, unpack(seg).local_rot)
+    assert torch.allclose(turn_toward(x0, seg, goal, math.pi, 0.1, where=torch.tensor([False, False])), seg, atol=1e-12)

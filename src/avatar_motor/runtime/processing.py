@@ -10,7 +10,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, PARENTS, forward_kinematics
-from ..data.motion_state import FPS, SLICES, pack, unpack
+from ..data.motion_state import FPS, SLICES, facing_yaw, pack, unpack
 
 
 def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -127,26 +127,31 @@ def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.T
     return out
 
 
-def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2),
-              where: torch.Tensor | None = None) -> torch.Tensor:
-    """Root motion from the feet (our addition, as game engines do): a foot that is low and slow is
-    planted, so whatever it slides horizontally is the body sliding. Each frame's horizontal
-    translation of the whole body is corrected by minus the contact-weighted mean slide of the two
-    feet, accumulated over the segment (x0 stays where it is). Contact weights ramp linearly from
-    1 to 0 between the bounds of `height` (m above ground) and `speed` (m/s), so the correction
-    fades in and out without a jolt. Bones and rotations are untouched; velocities are recomputed.
-    where (B,) bool limits the correction to some bodies."""
-    B, N, _ = seg.shape
-    u0, u = unpack(x0), unpack(seg)
+def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2)):
+    """How planted each foot is in each frame of seg (B, N, 267) after x0 (B, 267): 1 when low and
+    slow, ramping linearly to 0 between the bounds of `height` (m above ground) and `speed` (m/s).
+    Returns (contacts (B, N, 2), per-frame horizontal foot steps (B, N, 2, 2))."""
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
-    P = torch.cat((u0.joints[:, None], u.joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
-    step = (P[:, 1:] - P[:, :-1])[..., [0, 2]]  # (B, N, 2, 2) per-frame horizontal slide
+    P = torch.cat((unpack(x0).joints[:, None], unpack(seg).joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
+    step = (P[:, 1:] - P[:, :-1])[..., [0, 2]]
     h, v = P[:, 1:, :, 1], step.norm(dim=-1) * FPS
 
     def ramp(x, lo, hi):
         return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
 
-    c = ramp(h, *height) * ramp(v, *speed)  # (B, N, 2)
+    return ramp(h, *height) * ramp(v, *speed), step
+
+
+def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
+    """Root motion from the feet (our addition, as game engines do): a foot that is low and slow is
+    planted (foot_contacts), so whatever it slides horizontally is the body sliding. Each frame's
+    horizontal translation of the whole body is corrected by minus the contact-weighted mean slide
+    of the two feet, accumulated over the segment (x0 stays where it is). The contact weights fade
+    in and out, so the correction does not jolt. Bones and rotations are untouched; velocities are
+    recomputed. where (B,) bool limits the correction to some bodies."""
+    B, N, _ = seg.shape
+    u = unpack(seg)
+    c, step = foot_contacts(x0, seg)  # (B, N, 2), (B, N, 2, 2)
     if where is not None:
         c = c * where.to(c.dtype)[:, None, None]
     d = -(c[..., None] * step).sum(2) / c.sum(2, keepdim=True).clamp(min=1.0)  # (B, N, 2)
@@ -154,6 +159,37 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0
     off[..., [0, 2]] = d.cumsum(1)
     joints = u.joints + off[:, :, None]
     return _pack_moving(x0, u.root_pos + off, u.root_rot, u.local_rot, joints)
+
+
+def turn_toward(x0: torch.Tensor, seg: torch.Tensor, goal_yaw: torch.Tensor, max_rate: float,
+                tolerance: float = 0.0, where: torch.Tensor | None = None) -> torch.Tensor:
+    """Turn each body toward a facing goal (our addition; game engines call it root adjustment).
+    The network turns slowly or side-steps where the data did; whatever facing error is left at
+    the segment's last frame (hips, as L_facing measures it) is taken out by a yaw rotation that
+    grows over the segment from 0 at x0 (so the join is continuous), at most max_rate rad/s on
+    average. It grows while at most one foot is planted: turning a body in double support would
+    slide both feet (a body planted on both feet all segment long turns evenly). Each frame turns
+    about its own pelvis, so the path is kept and only the facing changes; foot locking afterwards
+    makes a planted foot the pivot. The next segment is conditioned on the turned body, so the
+    network walks the way it now faces. seg (B, N, 267) and goal_yaw (B,) in x0's frame;
+    tolerance (rad): the error left alone (a walking pelvis swings a few degrees); where (B,) bool
+    limits it to some bodies."""
+    B, N, _ = seg.shape
+    u = unpack(seg)
+    err = goal_yaw.to(seg.dtype) - facing_yaw(u.joints[:, -1])
+    err = torch.atan2(torch.sin(err), torch.cos(err))  # wrapped to (-pi, pi]
+    limit = max_rate * N / FPS
+    total = (err - err.clamp(-tolerance, tolerance)).clamp(-limit, limit)  # errors within tolerance stay
+    if where is not None:
+        total = total * where.to(seg.dtype)
+    free = 1.0 - foot_contacts(x0, seg)[0].amin(-1)  # (B, N): 0 in double support
+    free = torch.where(free.sum(1, keepdim=True) > 0.5, free, torch.ones_like(free))
+    share = free.cumsum(1) / free.sum(1, keepdim=True)  # 0 -> 1 over the segment
+    R = rot.yaw_matrix(total[:, None] * share)  # (B, N, 3, 3)
+    pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
+    joints = torch.einsum("bnij,bnkj->bnki", R, u.joints - pivot[:, :, None]) + pivot[:, :, None]
+    root_pos = (R @ (u.root_pos - pivot)[..., None])[..., 0] + pivot
+    return _pack_moving(x0, root_pos, R @ u.root_rot, u.local_rot, joints)
 
 
 def _damping(halflife: float) -> float:
