@@ -113,6 +113,38 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         import_motion(src, name="labelled", progress=False, workers=1)
         assert main(["eval", "actions", "--model", str(tmp_path / "tiny"), "--adaptors", f"ours={tmp_path / 'ad' / 'adaptor'}",
                      "--data", "labelled", "--n", "2", "--seconds", "1", "--encoder-steps", "2"]) == 0
+    else:
+        assert main(args + ["--ema-decay", "1.0"]) == 2  # an average that never moves is named
+        # the saved weights are the moving average: from the zero-initialised projections it
+        # moves less far than the last weights of the same run
+        from avatar_motor.train.adapt import AdaptConfig, adapt
+        net = load_checkpoint(tmp_path / "tiny").net
+        norms = {}
+        for decay in (0.0, 0.9):
+            cfg = AdaptConfig(base=str(tmp_path / "tiny"), data=["labelled"], task="reach", steps=3, batch=4, split="all",
+                              out=str(tmp_path / f"ema{decay}"), ema_decay=decay, ema_start=0)
+            ad = load_adaptor(adapt(cfg, progress=False), net)
+            norms[decay] = sum(float(p.norm()) for p in ad.zero.parameters())
+        assert 0 < norms[0.9] < norms[0.0]
+
+
+def test_a_reaching_avatar_faces_its_target_until_it_is_near(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    ad = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
+    crowd = Crowd(motor, RuntimeConfig(face_target_beyond=0.5), adaptor=ad)
+    i = crowd.spawn(position=(1.0, 2.0))
+    a = crowd.avatars[i]
+    assert crowd._facing_goal(a) is None  # no target, no facing goal
+    crowd.set_target(i, (1.0 - 3.0, 2.0 + 4.0))
+    pelvis = a.state[135:201].view(22, 3)[0, [0, 2]]
+    way = torch.tensor([-3.0, 4.0]) + torch.tensor([1.0, 2.0]) - pelvis
+    assert torch.allclose(crowd._facing_goal(a)[[0, 2]], way / way.norm(), atol=1e-6)
+    crowd.set_target(i, (float(pelvis[0]) + 0.3, float(pelvis[1])))
+    assert crowd._facing_goal(a) is None  # near: it may step there any way it likes
+    crowd.set_goal(i, (0.0, 1.0), facing=(1.0, 0.0))
+    assert torch.allclose(crowd._facing_goal(a), torch.tensor([1.0, 0.0, 0.0]))  # a user's facing goal wins
 
 
 def test_runtime_labels_and_targets(tmp_path):

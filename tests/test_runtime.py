@@ -256,6 +256,23 @@ def test_planted_feet_do_not_slide():
     assert torch.allclose(lock_feet(air[:, 0], air[:, 1:]), air[:, 1:], atol=1e-9)
 
 
+def test_a_body_twisting_on_both_planted_feet_pivots_instead_of_sliding():
+    from avatar_motor.data.motion_state import apply_transform
+    from avatar_motor.runtime.processing import lock_feet
+    still = standing_state()[None, None].double().repeat(1, 16, 1)
+    yaw = torch.arange(16, dtype=torch.float64) * 1.5 / FPS  # the whole body spins at 1.5 rad/s about its pelvis
+    pel = joints_of(still)[0, 0, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    R = rot.yaw_matrix(yaw)[None]  # (1, 16, 3, 3): one rotation per frame
+    twist = apply_transform(still[:, :, None], R, (pel - (R @ pel[:, None])[..., 0]))[:, :, 0]
+    feet = joints_of(twist)[..., [10, 11], :]
+    assert float((feet[:, -1] - feet[:, 0]).norm(dim=-1).min()) > 0.05  # both feet slide
+    out = lock_feet(twist[:, 0], twist[:, 1:], yaw=True)
+    assert (joints_of(out)[..., [10, 11], :] - feet[:, :1]).norm(dim=-1).max() < 1e-6  # both stay put
+    # translation alone cannot hold two feet that slide apart
+    moved = (joints_of(lock_feet(twist[:, 0], twist[:, 1:]))[..., [10, 11], :] - feet[:, :1]).norm(dim=-1).max()
+    assert moved > 0.05
+
+
 def test_inertialization_matches_velocity_at_the_join():
     x = walk_states()
     x0, seg = x[:, 0], x[:, 1:].clone()

@@ -361,6 +361,8 @@ def _adapt(a) -> int:
                       scratch=a.scratch, clips_per_class=a.clips_per_class, max_minutes=a.max_minutes, lr=a.lr)
     if a.swap_initial is not None:
         cfg.swap_initial = a.swap_initial
+    if a.ema_decay is not None:
+        cfg.ema_decay = a.ema_decay
     path = adapt(cfg)
     print(f"adaptor written to {path}")
     return 0
@@ -494,6 +496,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
                          "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")
     ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
+    ad.add_argument("--ema-decay", type=float, help="the adaptor saved is this moving average of the weights (default 0.999; 0 = the last weights)")
     ad.set_defaults(func=_adapt)
 
     sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")
