@@ -171,6 +171,16 @@ def test_runtime_labels_and_targets(tmp_path):
     assert reach.step_segment()[k].shape == (15, 267)
     with pytest.raises(ValueError, match="finite"):
         reach.set_target(k, (float("nan"), 1.0))
+    with pytest.raises(ValueError, match=r"adaptor scale must be in \[0, 10\]"):
+        reach.set_target(k, (2.0, 1.0), scale=-1.0)
+    # a target at scale 0 is the base model exactly (classifier-free guidance weight 0)
+    torch.nn.init.normal_(reach.adaptor.zero[0].weight, std=0.5)
+    base = Crowd(motor)
+    b = base.spawn()
+    zero = Crowd(motor, adaptor=reach.adaptor)
+    z = zero.spawn()
+    zero.set_target(z, (2.0, 1.0), scale=0.0)
+    assert torch.equal(zero.step_segment()[z], base.step_segment()[b])
 
 
 def test_adaptation_evals_run_on_tiny_models(tmp_path):

@@ -90,7 +90,7 @@ def test_studio_offers_the_labels_of_an_action_adaptor(tmp_path):
         deadline = time.time() + 5
         while time.time() < deadline and world.crowd.avatars[0].label is None:
             time.sleep(0.05)
-        assert world.crowd.avatars[0].label == 1 and world.crowd.avatars[0].label_scale == 2.0
+        assert world.crowd.avatars[0].label == 1 and world.crowd.avatars[0].control_scale == 2.0
         page.click("#labels button[data-label='']")
         deadline = time.time() + 5
         while time.time() < deadline and world.crowd.avatars[0].label is not None:

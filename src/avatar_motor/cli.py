@@ -244,9 +244,9 @@ def _generate(a) -> int:
         while impulses and impulses[0][0] <= t:
             crowd.impulse(i, impulses.pop(0)[1])
         while labels and labels[0][0] <= t:
-            crowd.set_label(i, labels.pop(0)[1], a.label_scale)
+            crowd.set_label(i, labels.pop(0)[1], a.adaptor_scale)
         while targets and targets[0][0] <= t:
-            crowd.set_target(i, targets.pop(0)[1])
+            crowd.set_target(i, targets.pop(0)[1], a.adaptor_scale)
         frames.append(crowd.next_frames()[i])
     X = torch.stack(frames)
     write_motion(out, X, meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
@@ -395,8 +395,9 @@ def _eval_adaptation(a) -> int:
     init, shapes, _ = initial_states(caches, a.n, a.seed)
     cfg = _runtime_config(a)
     if a.ecmd == "reach":
-        rows, paths = eval_reach(motor, methods, init, shapes, a.seconds or 2.0, a.seed, cfg)
-        print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s",
+        rows, paths = eval_reach(motor, methods, init, shapes, a.seconds or 2.0, a.seed, cfg, a.adaptor_scale)
+        print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s, "
+                          f"adaptor scale {a.adaptor_scale:g}",
                           rows, ["min_dist_m", "ASR", "ANCR"]))
         if a.png:
             target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
@@ -430,9 +431,9 @@ def _eval_adaptation(a) -> int:
               f"{r_precision(*enc, X, y, canonical=True):.3f}", flush=True)
     except ValueError as e:
         print(f"no real reference for the evaluator: {e}")
-    rows, rollouts = eval_actions(motor, methods, enc, init, shapes, classes, seconds, a.seed, cfg, a.label_scale)
+    rows, rollouts = eval_actions(motor, methods, enc, init, shapes, classes, seconds, a.seed, cfg, a.adaptor_scale)
     print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {seconds:g} s, "
-                      f"label scale {a.label_scale:g}", rows, ["R_precision", "ASR", "ANCR"]))
+                      f"adaptor scale {a.adaptor_scale:g}", rows, ["R_precision", "ASR", "ANCR"]))
     print(format_confusion(rows, classes))
     if a.png:
         from .eval.adaptation import canonical_joints
@@ -525,7 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--goal", action="append", help="VX,VZ[@SECONDS] world m/s, or free[@SECONDS] (repeatable)")
     g.add_argument("--adaptor", help="adaptor folder from 'avatar-motor adapt' (labels or targets)")
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
-    g.add_argument("--label-scale", type=float, default=1.0, help="adaptor strength (0 = base model)")
+    g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
+                   help="adaptor strength for labels and targets (classifier-free guidance weight; 0 = base model)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
     _add_runtime_args(g)
     g.add_argument("--out", required=True)
@@ -563,8 +565,8 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--label-key", default="content")
         e.add_argument("--encoder-steps", type=int, default=600)
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
-        if name == "actions":
-            e.add_argument("--label-scale", type=float, default=1.0, help="adaptor strength (classifier-free guidance weight)")
+        e.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
+                       help="adaptor strength (classifier-free guidance weight; 0 = base model)")
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float)
         _add_runtime_args(e)

@@ -109,7 +109,7 @@ def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int,
 
 
 def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: list[str], seconds: float = 3.0,
-                 seed: int = 0, cfg: RuntimeConfig | None = None, label_scale: float = 1.0) -> tuple[list[dict], dict]:
+                 seed: int = 0, cfg: RuntimeConfig | None = None, scale: float = 1.0) -> tuple[list[dict], dict]:
     """Rows of Table A3 (a method named "base" with adaptor None is the unadapted model) and the
     rollouts {method: {label: (n, T, 267)}}."""
     cfg = cfg or RuntimeConfig()
@@ -118,7 +118,7 @@ def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: l
     for name, ad in adaptors.items():
         Xs, ys, per_label = [], [], {}
         for c, label in enumerate(classes):
-            setup = (lambda crowd, i, k, label=label: crowd.set_label(i, label, label_scale)) if ad is not None else (lambda *_: None)
+            setup = (lambda crowd, i, k, label=label: crowd.set_label(i, label, scale)) if ad is not None else (lambda *_: None)
             X = _rollout(motor, ad, init, shapes, int(seconds * FPS), setup, seed, cfg)
             Xs.append(X)
             ys.append(torch.full((len(X),), c))
@@ -133,7 +133,7 @@ def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: l
 
 
 def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0, seed: int = 0,
-               cfg: RuntimeConfig | None = None) -> tuple[list[dict], dict]:
+               cfg: RuntimeConfig | None = None, scale: float = 1.0) -> tuple[list[dict], dict]:
     """Rows of Table A4 and the pelvis paths {method: (8 targets, n, T, 2)} in each initial state's
     own frame (x left, z forward), where the targets are TARGETS."""
     from ..data.motion_state import canonical_transform
@@ -144,7 +144,7 @@ def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0,
         dists, Js, local = [], [], []
         for tx, tz in TARGETS:
             world = (tf.R.float() @ torch.tensor([tx, 0.0, tz]) + tf.t.float())[:, [0, 2]]  # (n, 2)
-            setup = (lambda crowd, i, k, world=world: crowd.set_target(i, world[k].tolist())) if ad is not None else (lambda *_: None)
+            setup = (lambda crowd, i, k, world=world: crowd.set_target(i, world[k].tolist(), scale)) if ad is not None else (lambda *_: None)
             X = _rollout(motor, ad, init, shapes, int(seconds * FPS), setup, seed, cfg)
             J = joints_of(X)
             d = (J[:, :, 0, [0, 2]] - world[:, None]).norm(dim=-1).amin(1)

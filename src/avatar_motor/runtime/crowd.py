@@ -101,7 +101,7 @@ class AvatarState:
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
     label: int | None = None  # action label index of the adaptor
-    label_scale: float = 1.0
+    control_scale: float = 1.0  # the adaptor's strength for this avatar's label or target (CFG weight)
     target: torch.Tensor | None = None  # (2,) world x, z for a reaching adaptor
     epoch: int = 0  # bumped by every interruption
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
@@ -126,6 +126,11 @@ def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: 
 def _body_to_world(a: AvatarState) -> torch.Tensor:
     """The yaw rotation from the avatar's body frame (X left, Z forward) to the world."""
     return canonical_transform(a.state[None].double()).R[0].float()
+
+
+def _check_scale(scale: float) -> None:
+    if not (math.isfinite(scale) and 0 <= scale <= 10):
+        raise ValueError(f"adaptor scale must be in [0, 10] (0 = base model, 1 = as trained), got {scale}")
 
 
 def validate_vector(v, n: int, what: str) -> torch.Tensor:
@@ -200,21 +205,22 @@ class Crowd:
             labels = self.adaptor.cfg.labels
             if label not in labels:
                 raise ValueError(f"unknown label {label!r}; this adaptor knows {labels}")
-            if not (math.isfinite(scale) and 0 <= scale <= 10):
-                raise ValueError("label scale must be in [0, 10]")
-            a.label, a.label_scale = labels.index(label), float(scale)
+            _check_scale(scale)
+            a.label, a.control_scale = labels.index(label), float(scale)
         self.interrupt(i)
 
-    def set_target(self, i: int, position) -> None:
+    def set_target(self, i: int, position, scale: float = 1.0) -> None:
         """World (x, z) target of a reaching adaptor (None releases); re-expressed in every
-        segment's canonical frame, so a moving target is followed."""
+        segment's canonical frame, so a moving target is followed. scale as for labels: below 1
+        the base model's continuity weighs more (measured: slower, less sliding)."""
         a = self._get(i)
         if position is None:
             a.target = None
         else:
             if self.adaptor is None or self.adaptor.cfg.control != "target":
                 raise ValueError("no reaching adaptor loaded (avatar-motor adapt reach, then --adaptor DIR)")
-            a.target = validate_vector(position, 2, "target (x, z)")
+            _check_scale(scale)
+            a.target, a.control_scale = validate_vector(position, 2, "target (x, z)"), float(scale)
         self.interrupt(i)
 
     def impulse(self, i: int, preset: str, scale: float = 1.0) -> None:
@@ -297,14 +303,14 @@ class Crowd:
         return {"avatars": [a.id for a in avs], "epochs": [a.epoch for a in avs], "x0": x0,
                 "impulse_velocity": dv, "impulse": impulse,
                 "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
-                "labels": [a.label for a in avs], "label_scales": [a.label_scale for a in avs],
+                "labels": [a.label for a in avs], "control_scales": [a.control_scale for a in avs],
                 "targets": [a.target for a in avs],
                 "v_goal": [a.v_goal for a in avs], "facing_goal": [self._facing_goal(a) for a in avs]}
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
         while it is farther than face_target_beyond."""
-        if a.facing_goal is not None or a.target is None or self.cfg.face_target_beyond <= 0:
+        if a.facing_goal is not None or a.target is None or a.control_scale == 0 or self.cfg.face_target_beyond <= 0:
             return a.facing_goal
         x = a.queue[-1] if a.queue else a.state
         d = a.target - x[SLICES["joints"]][[0, 2]]  # target - pelvis, horizontal
@@ -372,7 +378,7 @@ class Crowd:
             return lambda x_t, t: net(t, x_t, cond)
         if ad.cfg.control == "label":
             y = torch.tensor([lb if lb is not None else ad.null_label for lb in job["labels"]])
-            scale = torch.tensor([s if lb is not None else 0.0 for lb, s in zip(job["labels"], job["label_scales"])])
+            scale = torch.tensor([s if lb is not None else 0.0 for lb, s in zip(job["labels"], job["control_scales"])])
         else:
             Rt = tf.R.transpose(-1, -2).float()
             y = torch.zeros(len(job["targets"]), 2)
@@ -380,7 +386,7 @@ class Crowd:
                 if tg is not None:
                     local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
                     y[k] = local[[0, 2]]
-            scale = torch.tensor([1.0 if tg is not None else 0.0 for tg in job["targets"]])
+            scale = torch.tensor([s if tg is not None else 0.0 for tg, s in zip(job["targets"], job["control_scales"])])
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
 
