@@ -5,7 +5,8 @@ One segment per step (for the avatars whose queue of frames ran out):
     impulses go into the velocities the network is conditioned on
   2 condition embedding (inside the denoiser)
   3 reverse diffusion with optional gradient guidance; then our test-time processing: velocity
-    fusion, foot locking, speed-adaptive smoothing, snap to ground, inertialization
+    fusion, root adjustment toward a facing goal, foot locking, speed-adaptive smoothing, snap to
+    ground, inertialization
   4 back to world, queue the 15 new frames.
 A command (impulse, push, goal) takes effect at the next frame: the avatar's queued frames are
 dropped and its next segment starts from the frame it is showing now.

@@ -1,7 +1,8 @@
 """Test-time processing. PRIMAL supplementary §8.2.2: joint re-projection, snapping to the ground,
 and inertialization blending with Holden's decaying springs (Spring-It-On). Ours, each measured
-against the shipped model (see the runtime defaults): velocity fusion, foot locking, trend-keeping
-(and speed-adaptive) smoothing, velocity-matched blending, and rotation fitting (off)."""
+against the shipped model (see the runtime defaults): velocity fusion, root adjustment toward a
+facing goal, foot locking (with yaw for steered bodies), trend-keeping (and speed-adaptive)
+smoothing, velocity-matched blending, and rotation fitting (off)."""
 from __future__ import annotations
 
 import math
