@@ -57,7 +57,7 @@ class RuntimeConfig:
     lock_feet: bool = True  # planted feet do not slide: root motion corrected from foot contacts (not under gradient speed guidance); our addition
     # for bodies with a facing goal, foot locking also undoes the yaw they make on both planted
     # feet (their turning is turn_toward's, in single support). Measured on eval control (45 x 3 s,
-    # seeds 0/1): ASR over unguided +0.013/+0.020 -> +0.008/+0.015, facing error 0.084 -> 0.098.
+    # seeds 0/1): ASR over unguided +0.013/+0.020 -> +0.008/+0.015, facing error 0.084 -> 0.096.
     # For every body it also cut the unguided ASR (realism 0.015 -> 0.010) but made idling
     # livelier than the data (alive 0.51 -> 0.58, real 0.38), so it is for steered bodies only
     lock_yaw: bool = True

@@ -156,46 +156,30 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
     """Root motion from the feet (our addition, as game engines do): a foot that is low and slow is
     planted (foot_contacts), so whatever it slides horizontally is the body sliding. Frame by frame
     the whole body is moved back by the contact-weighted mean slide of the two feet, accumulated
-    over the segment (x0 stays where it is). With `yaw` (a bool, or one per body (B,)), a body
-    planted on both feet is also turned back by the yaw that the line between its feet turned
-    (weighted by the weaker contact), so a body that twists in double support pivots instead of
-    sliding both feet apart. The contact
-    weights fade in and out, so the correction does not jolt. Bones and local rotations are
-    untouched; velocities are recomputed. where (B,) bool limits the correction to some bodies."""
+    over the segment (x0 stays where it is). With `yaw` (a bool, or one per body (B,)), a body on
+    two planted feet is also turned back about its pelvis by the yaw that the line between its feet
+    turned (weighted by the weaker contact), so a body that twists in double support pivots instead
+    of sliding both feet apart. The contact weights fade in and out, so the correction does not
+    jolt. Bones and local rotations are untouched; velocities are recomputed. where (B,) bool
+    limits the correction to some bodies."""
     B, N, _ = seg.shape
     u = unpack(seg)
     c, _ = foot_contacts(x0, seg)  # (B, N, 2)
     if where is not None:
         c = c * where.to(c.dtype)[:, None, None]
-    yaw_on = torch.as_tensor(yaw, dtype=seg.dtype).expand(B)
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
-    prev = unpack(x0).joints[:, feet][..., [0, 2]]  # corrected feet of the previous frame (B, 2, 2)
-    R = torch.eye(2, dtype=seg.dtype).repeat(B, 1, 1)  # accumulated correction p -> R p + t (horizontal)
-    t = torch.zeros(B, 2, dtype=seg.dtype)
-    Rs, ts = [], []
-    for i in range(N):
-        cur = (R @ u.joints[:, i, feet][..., [0, 2]].transpose(-1, -2)).transpose(-1, -2) + t[:, None]
-        w = c[:, i]  # (B, 2)
-        if yaw_on.any():
-            a, b = cur[:, 0] - cur[:, 1], prev[:, 0] - prev[:, 1]  # the feet line now and before
-            turn = torch.atan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], (a * b).sum(-1)) * w.amin(-1) * yaw_on
-            cs, sn = torch.cos(turn), torch.sin(turn)
-            dR = torch.stack((torch.stack((cs, -sn), -1), torch.stack((sn, cs), -1)), -2)  # turns a onto b
-            mid = (cur * w[..., None]).sum(1) / w.sum(1, keepdim=True).clamp_min(1e-9)
-            cur = (dR @ (cur - mid[:, None]).transpose(-1, -2)).transpose(-1, -2) + mid[:, None]
-            R, t = dR @ R, (dR @ (t - mid)[..., None])[..., 0] + mid
-        d = -(w[..., None] * (cur - prev)).sum(1) / w.sum(1, keepdim=True).clamp(min=1.0)
-        t = t + d
-        prev = cur + d[:, None]
-        Rs.append(R)
-        ts.append(t)
-    R2, t2 = torch.stack(Rs, 1), torch.stack(ts, 1)  # (B, N, 2, 2), (B, N, 2)
-    M3 = torch.zeros(B, N, 3, 3, dtype=seg.dtype)  # the horizontal transform as a yaw about +Y
-    M3[..., 0, 0], M3[..., 0, 2], M3[..., 2, 0], M3[..., 2, 2] = R2[..., 0, 0], R2[..., 0, 1], R2[..., 1, 0], R2[..., 1, 1]
-    M3[..., 1, 1] = 1.0
-    t3 = torch.zeros(B, N, 3, dtype=seg.dtype)
-    t3[..., [0, 2]] = t2
-    return _move_frames(x0, u, M3, t3)
+    P = torch.cat((unpack(x0).joints[:, None], u.joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
+    a = P[:, :, 0] - P[:, :, 1]  # the line between the feet
+    back = torch.atan2(a[:, 1:, 2] * a[:, :-1, 0] - a[:, 1:, 0] * a[:, :-1, 2], (a[:, 1:] * a[:, :-1]).sum(-1))
+    on = torch.as_tensor(yaw, dtype=seg.dtype).expand(B)[:, None]
+    R = rot.yaw_matrix((back * c.amin(-1) * on).cumsum(1))  # (B, N, 3, 3): each frame's turn back
+    pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
+    t = pivot - (R @ pivot[..., None])[..., 0]  # turn about the pelvis
+    turned = torch.einsum("bnij,bnfj->bnfi", R, P[:, 1:]) + t[:, :, None]
+    step = (turned - torch.cat((P[:, :1], turned[:, :-1]), 1))[..., [0, 2]]  # (B, N, 2, 2)
+    d = -(c[..., None] * step).sum(2) / c.sum(2, keepdim=True).clamp(min=1.0)  # (B, N, 2)
+    t[..., [0, 2]] += d.cumsum(1)
+    return _move_frames(x0, u, R, t)
 
 
 def turn_toward(x0: torch.Tensor, seg: torch.Tensor, goal_yaw: torch.Tensor, max_rate: float,
