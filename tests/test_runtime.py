@@ -348,26 +348,49 @@ def test_steering_velocity_turns_with_the_body(motor, with_body, expected):
     assert torch.allclose(dv[[0, 2]].float(), torch.tensor(expected), atol=1e-3)
 
 
+def _wrapped(a: torch.Tensor) -> torch.Tensor:
+    return torch.atan2(torch.sin(a), torch.cos(a))
+
+
 def test_turning_toward_a_facing_goal_keeps_the_path_and_the_bones():
+    from avatar_motor.body.skeleton import PARENTS
     from avatar_motor.data.motion_state import facing_yaw
     from avatar_motor.runtime.processing import turn_toward
     x = walk_states()
     x0, seg = x[:, 0], x[:, 1:]
-    N = seg.shape[1]
     goal = facing_yaw(joints_of(seg[:, -1])) + torch.tensor([0.6, -3.0], dtype=seg.dtype)  # a small and a large turn
-    out = turn_toward(x0, seg, goal, max_rate=math.pi, tolerance=0.1)
+    out, added = turn_toward(x0, seg, goal, max_rate=math.pi, tolerance=0.1)
     yaw = facing_yaw(joints_of(out))
-    err = torch.atan2(torch.sin(goal - yaw[:, -1]), torch.cos(goal - yaw[:, -1]))
-    assert torch.allclose(err[0], torch.tensor(0.1, dtype=seg.dtype), atol=1e-9)  # turned up to the tolerance
-    limit = math.pi * N / FPS  # the large turn is capped at pi rad/s over the segment
-    turned = yaw[1, -1] - facing_yaw(joints_of(seg[1, -1]))
-    assert torch.allclose(torch.atan2(torch.sin(turned), torch.cos(turned)), torch.tensor(-limit, dtype=seg.dtype), atol=1e-9)
+    assert torch.allclose(_wrapped(goal - yaw[:, -1])[0], torch.tensor(0.1, dtype=seg.dtype), atol=1e-9)  # up to the tolerance
+    turned = _wrapped(yaw - facing_yaw(joints_of(seg)))
+    assert torch.allclose(turned, added, atol=1e-9)  # the yaw it reports is the yaw it added
+    assert float(torch.diff(turned, dim=1, prepend=torch.zeros(2, 1, dtype=seg.dtype)).abs().max()) <= math.pi / FPS + 1e-9
+    assert float(turned[1, -1]) < -0.5  # the large turn goes on, capped
     J, J_in = joints_of(out), joints_of(seg)
     assert torch.allclose(J[..., 0, [0, 2]], J_in[..., 0, [0, 2]], atol=1e-12)  # the pelvis path is kept
-    from avatar_motor.body.skeleton import PARENTS
 
     def bones(J):
         return (J[..., 1:, :] - J[..., PARENTS[1:], :]).norm(dim=-1)
     assert torch.allclose(bones(J), bones(J_in), atol=1e-12)
     assert torch.allclose(unpack(out).local_rot, unpack(seg).local_rot)
-    assert torch.allclose(turn_toward(x0, seg, goal, math.pi, 0.1, where=torch.tensor([False, False])), seg, atol=1e-12)
+    assert torch.allclose(turn_toward(x0, seg, goal, math.pi, 0.1, where=torch.tensor([False, False]))[0], seg, atol=1e-12)
+
+
+def test_a_standing_body_turns_within_the_rate_and_foot_locking_keeps_the_turn():
+    from avatar_motor.data.motion_state import facing_yaw
+    from avatar_motor.runtime.processing import lock_feet, turn_toward
+    still = standing_state()[None, None].double().repeat(2, 16, 1)
+    lifted = still.clone()
+    lifted[1, -2:, 136:201:3] += 0.3  # the second body lifts everything (both feet) in the last 2 frames
+    x0, seg = lifted[:, 0], lifted[:, 1:]
+    goal = torch.full((2,), 1.5, dtype=torch.float64)
+    out, added = turn_toward(x0, seg, goal, max_rate=math.pi)
+    steps = torch.diff(added, dim=1, prepend=torch.zeros(2, 1, dtype=torch.float64))
+    assert float(steps.abs().max()) <= math.pi / FPS + 1e-9  # no snap when the turn has few frames to happen in
+    assert torch.allclose(steps[0], steps[0, :1].expand(15))  # planted all along: it turns evenly
+    assert float(steps[1, :-2].abs().max()) < 1e-12  # it waits for the free frames
+    locked = lock_feet(x0, out, yaw=True, turned=added)
+    kept = _wrapped(facing_yaw(joints_of(locked[:, -1])) - facing_yaw(joints_of(seg[:, -1])))
+    assert torch.allclose(kept[0], added[0, -1], atol=1e-9)  # the yaw lock does not undo the turn
+    undone = _wrapped(facing_yaw(joints_of(lock_feet(x0, out, yaw=True)[:, -1])) - facing_yaw(joints_of(seg[:, -1])))
+    assert float(undone[0].abs()) < 1e-6  # (without `turned` it would)

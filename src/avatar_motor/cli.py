@@ -103,7 +103,7 @@ def _runtime_config(a):
         cfg.steps = a.steps
     if getattr(a, "no_processing", False):
         cfg.reproject = cfg.snap = cfg.inertialize = cfg.lock_feet = cfg.fit_rotations = False
-        cfg.smooth_sigma = cfg.fuse_velocity = 0.0
+        cfg.smooth_sigma = cfg.fuse_velocity = cfg.turn_rate = 0.0
     fields = {f.name: f for f in dataclasses.fields(RuntimeConfig)}
     for item in getattr(a, "runtime", None) or []:
         name, eq, value = item.partition("=")
@@ -497,7 +497,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
                          "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")
     ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
-    ad.add_argument("--ema-decay", type=float, help="the adaptor saved is this moving average of the weights (default 0.999; 0 = the last weights)")
+    ad.add_argument("--ema-decay", type=float, help="the adaptor saved is this moving average of the weights, from step 1,000 on (default 0.999; 0 = the last weights)")
     ad.set_defaults(func=_adapt)
 
     sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")

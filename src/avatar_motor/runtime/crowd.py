@@ -57,7 +57,7 @@ class RuntimeConfig:
     lock_feet: bool = True  # planted feet do not slide: root motion corrected from foot contacts (not under gradient speed guidance); our addition
     # for bodies with a facing goal, foot locking also undoes the yaw they make on both planted
     # feet (their turning is turn_toward's, in single support). Measured on eval control (45 x 3 s,
-    # seeds 0/1): ASR over unguided +0.013/+0.020 -> +0.008/+0.015, facing error 0.084 -> 0.096.
+    # seeds 0/1): ASR over unguided +0.013/+0.020 -> +0.009/+0.016, facing error 0.084 -> 0.096.
     # For every body it also cut the unguided ASR (realism 0.015 -> 0.010) but made idling
     # livelier than the data (alive 0.51 -> 0.58, real 0.38), so it is for steered bodies only
     lock_yaw: bool = True
@@ -74,7 +74,7 @@ class RuntimeConfig:
     # eval control (45 x 3 s): 0 -> velocity error 0.748, facing 0.341; 0.5 -> 0.648, 0.277; 1 -> 0.827, 0.273
     steer_with_body: float = 0.5
     # the facing error the network leaves at a segment's end is turned out of the segment (our
-    # root adjustment, processing.turn_toward), at most turn_rate rad/s (0 = off); errors within
+    # root adjustment, processing.turn_toward), at most turn_rate rad/s in any frame (0 = off); errors within
     # turn_tolerance rad are left to the network. Measured on eval control (45 x 3 s), off -> pi/0.1:
     # velocity error 0.648 -> 0.515 m/s, facing error 0.277 -> 0.085, ASR +0.003 -> +0.014 over
     # unguided; rate 2 without tolerance: 0.512, 0.053, +0.018; 1.5 with 0.05: 0.516, 0.071, +0.019
@@ -349,14 +349,15 @@ class Crowd:
         t2 = time.perf_counter()
         seg = norm.decode(seg_n).double()
         seg = fuse_velocities(x0c, seg, cfg.fuse_velocity)
+        turned = None
         if cfg.turn_rate > 0 and any(f is not None for f in job["facing_goal"]):
-            seg = self._turn(x0c, seg, job["facing_goal"], Rt)
+            seg, turned = self._turn(x0c, seg, job["facing_goal"], Rt)
         if cfg.lock_feet:
             # not under gradient speed guidance: with it this model glides rather than steps, and
             # locking its feet would stop the avatar (measured: 0.03 m instead of 1.8 m in 4 s)
             gliding = cfg.move_weight > 0 or cfg.path_weight > 0
             seg = lock_feet(x0c, seg, where=torch.tensor([v is None or not gliding for v in job["v_goal"]]),
-                            yaw=torch.tensor([cfg.lock_yaw and f is not None for f in job["facing_goal"]]))
+                            yaw=torch.tensor([cfg.lock_yaw and f is not None for f in job["facing_goal"]]), turned=turned)
         if cfg.smooth_sigma > 0:
             seg = smooth_segment(x0c, seg, self._smoothing(x0c, seg))
         if cfg.snap:
@@ -391,8 +392,9 @@ class Crowd:
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
 
-    def _turn(self, x0c: torch.Tensor, seg: torch.Tensor, f_goals: list, Rt: torch.Tensor) -> torch.Tensor:
-        """Root adjustment toward each body's facing goal (bodies without one are left alone)."""
+    def _turn(self, x0c: torch.Tensor, seg: torch.Tensor, f_goals: list, Rt: torch.Tensor):
+        """Root adjustment toward each body's facing goal (bodies without one are left alone):
+        the turned segment and the yaw added per frame."""
         yaw = torch.zeros(len(seg), dtype=seg.dtype)
         for k, f in enumerate(f_goals):
             if f is not None:

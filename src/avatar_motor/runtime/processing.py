@@ -152,7 +152,7 @@ def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), spee
 
 
 def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = None,
-              yaw: bool | torch.Tensor = False) -> torch.Tensor:
+              yaw: bool | torch.Tensor = False, turned: torch.Tensor | None = None) -> torch.Tensor:
     """Root motion from the feet (our addition, as game engines do): a foot that is low and slow is
     planted (foot_contacts), so whatever it slides horizontally is the body sliding. Frame by frame
     the whole body is moved back by the contact-weighted mean slide of the two feet, accumulated
@@ -161,7 +161,8 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
     turned (weighted by the weaker contact), so a body that twists in double support pivots instead
     of sliding both feet apart. The contact weights fade in and out, so the correction does not
     jolt. Bones and local rotations are untouched; velocities are recomputed. where (B,) bool
-    limits the correction to some bodies."""
+    limits the correction to some bodies; turned (B, N) is a yaw per frame that was added on
+    purpose (turn_toward's) and is not undone."""
     B, N, _ = seg.shape
     u = unpack(seg)
     c, _ = foot_contacts(x0, seg)  # (B, N, 2)
@@ -169,8 +170,10 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
         c = c * where.to(c.dtype)[:, None, None]
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
     P = torch.cat((unpack(x0).joints[:, None], u.joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
-    a = P[:, :, 0] - P[:, :, 1]  # the line between the feet
-    back = torch.atan2(a[:, 1:, 2] * a[:, :-1, 0] - a[:, 1:, 0] * a[:, :-1, 2], (a[:, 1:] * a[:, :-1]).sum(-1))
+    a = (P[:, :, 0] - P[:, :, 1])[..., [0, 2]]  # the line between the feet, horizontal
+    back = torch.atan2(a[:, 1:, 1] * a[:, :-1, 0] - a[:, 1:, 0] * a[:, :-1, 1], (a[:, 1:] * a[:, :-1]).sum(-1))
+    if turned is not None:  # the line turned by that on purpose too
+        back = back + torch.diff(turned.to(seg.dtype), dim=1, prepend=torch.zeros_like(turned[:, :1]))
     on = torch.as_tensor(yaw, dtype=seg.dtype).expand(B)[:, None]
     R = rot.yaw_matrix((back * c.amin(-1) * on).cumsum(1))  # (B, N, 3, 3): each frame's turn back
     pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
@@ -183,32 +186,31 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
 
 
 def turn_toward(x0: torch.Tensor, seg: torch.Tensor, goal_yaw: torch.Tensor, max_rate: float,
-                tolerance: float = 0.0, where: torch.Tensor | None = None) -> torch.Tensor:
+                tolerance: float = 0.0, where: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Turn each body toward a facing goal (our addition; game engines call it root adjustment).
     The network turns slowly or side-steps where the data did; whatever facing error is left at
     the segment's last frame (hips, as L_facing measures it) is taken out by a yaw rotation that
-    grows over the segment from 0 at x0 (so the join is continuous), at most max_rate rad/s on
-    average. It grows while at most one foot is planted: turning a body in double support would
+    grows over the segment from 0 at x0 (so the join is continuous). It grows while at most one
+    foot is planted, at most max_rate rad/s in any frame: turning a body in double support would
     slide both feet (a body planted on both feet all segment long turns evenly). Each frame turns
     about its own pelvis, so the path is kept and only the facing changes; foot locking afterwards
     makes a planted foot the pivot. The next segment is conditioned on the turned body, so the
     network walks the way it now faces. seg (B, N, 267) and goal_yaw (B,) in x0's frame;
     tolerance (rad): the error left alone (a walking pelvis swings a few degrees); where (B,) bool
-    limits it to some bodies."""
-    B, N, _ = seg.shape
+    limits it to some bodies. Returns the turned segment and each frame's added yaw (B, N)."""
     u = unpack(seg)
     err = goal_yaw.to(seg.dtype) - facing_yaw(u.joints[:, -1])
     err = torch.atan2(torch.sin(err), torch.cos(err))  # wrapped to (-pi, pi]
-    limit = max_rate * N / FPS
-    total = (err - err.clamp(-tolerance, tolerance)).clamp(-limit, limit)  # errors within tolerance stay
-    if where is not None:
-        total = total * where.to(seg.dtype)
     free = 1.0 - foot_contacts(x0, seg)[0].amin(-1)  # (B, N): 0 in double support
     free = torch.where(free.sum(1, keepdim=True) > 0.5, free, torch.ones_like(free))
-    share = free.cumsum(1) / free.sum(1, keepdim=True)  # 0 -> 1 over the segment
-    R = rot.yaw_matrix(total[:, None] * share)  # (B, N, 3, 3)
+    limit = max_rate * free.sum(1) / FPS  # each frame turns at most max_rate / FPS
+    total = torch.minimum(torch.maximum(err - err.clamp(-tolerance, tolerance), -limit), limit)  # errors within tolerance stay
+    if where is not None:
+        total = total * where.to(seg.dtype)
+    yaw = total[:, None] * free.cumsum(1) / free.sum(1, keepdim=True)  # 0 -> total over the segment
+    R = rot.yaw_matrix(yaw)  # (B, N, 3, 3)
     pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
-    return _move_frames(x0, u, R, pivot - (R @ pivot[..., None])[..., 0])
+    return _move_frames(x0, u, R, pivot - (R @ pivot[..., None])[..., 0]), yaw
 
 
 def _damping(halflife: float) -> float:
