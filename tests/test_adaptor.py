@@ -50,6 +50,28 @@ def test_training_leaves_frozen_base_bit_identical_and_scale_zero_is_base(kind):
     assert torch.equal(m(t, x, x0, y, scale=0.0), base(t, x, x0))
 
 
+def test_finetuning_trains_a_copy_and_records_the_base_it_started_from(tmp_path):
+    base = base_net()
+    before = {k: v.clone() for k, v in base.state_dict().items()}
+    m = AdaptedDenoiser(base, AdaptorConfig(kind="finetune", labels=["a", "b"]))
+    opt = torch.optim.AdamW(m.parameters(), lr=1e-2)
+    t, x, x0 = inputs()
+    for _ in range(3):
+        loss = (m(t, x, x0, torch.tensor([0, 1, 1])) - x).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert not torch.equal(m.base.out.weight, before["out.weight"])  # the tuned network moved
+    for k, v in base.state_dict().items():  # the shared base did not
+        assert torch.equal(v, before[k]), k
+    save_adaptor(tmp_path / "ft", m.eval(), "base-x")
+    shared = base_net()
+    ft = load_adaptor(tmp_path / "ft", shared, "base-x")  # its fingerprint is the original base's
+    assert torch.equal(ft(t, x, x0, torch.tensor([0, 1, 1])), m(t, x, x0, torch.tensor([0, 1, 1])))
+    for k, v in shared.state_dict().items():  # loading it leaves the shared base alone too
+        assert torch.equal(v, before[k]), k
+
+
 def test_targets_and_saving(tmp_path):
     base = base_net()
     m = AdaptedDenoiser(base, AdaptorConfig(control="target"))

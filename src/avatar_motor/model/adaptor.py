@@ -62,7 +62,11 @@ class AdaptedDenoiser(nn.Module):
         super().__init__()
         cfg.validate()
         self.cfg = cfg
-        self.base = base
+        # which base weights this adaptor starts from, taken before any training changes them
+        self.base_fingerprint = base_fingerprint(base)
+        # fine-tuning trains the base itself: on a copy, so the shared base model (the runtime's
+        # avatars without a label, the other methods of an eval) stays as it is
+        self.base = copy.deepcopy(base) if cfg.kind == "finetune" else base
         w = base.cfg.width
         if cfg.control == "label":
             self.embed = nn.Embedding(len(cfg.labels) + 1, w)  # the last index is the null label
@@ -133,7 +137,7 @@ def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, inf
     tmp.mkdir(parents=True)
     save_file({k: v.detach().contiguous() for k, v in model.adaptor_state().items()}, str(tmp / "adaptor.safetensors"))
     (tmp / "adaptor.json").write_text(json.dumps({"format": ADAPTOR_FORMAT, "adaptor": asdict(model.cfg),
-                                                  "base_model": base_name, "base_fingerprint": base_fingerprint(model.base),
+                                                  "base_model": base_name, "base_fingerprint": model.base_fingerprint,
                                                   **(info or {})}, indent=1))
     if folder.exists():
         shutil.rmtree(folder)
