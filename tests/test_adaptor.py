@@ -137,6 +137,9 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
                      "--data", "labelled", "--n", "2", "--seconds", "1", "--encoder-steps", "2"]) == 0
     else:
         assert main(args + ["--ema-decay", "1.0"]) == 2  # an average that never moves is named
+        # the scratch baseline loads beside the base it was compared with (its fingerprint is that base's)
+        assert main(args + ["--out", str(tmp_path / "scratch"), "--kind", "finetune", "--scratch"]) == 0  # the last --out counts
+        load_adaptor(tmp_path / "scratch" / "adaptor", load_checkpoint(tmp_path / "tiny").net)
         # the saved weights are the moving average: from the zero-initialised projections it
         # moves less far than the last weights of the same run
         from avatar_motor.train.adapt import AdaptConfig, adapt

@@ -13,7 +13,7 @@ import torch
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..data.motion_state import SLICES
-from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, save_adaptor
+from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint, save_adaptor
 from ..model.checkpoint import load_checkpoint
 from .losses import motion_loss
 from .trainer import resolve_caches
@@ -85,6 +85,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
     torch.manual_seed(cfg.seed)
     motor = load_checkpoint(cfg.base)
+    shipped_net = motor.net  # the base the adaptor is used with (and recorded against)
     if cfg.scratch:
         if cfg.kind != "finetune":
             raise ValueError("--scratch trains the whole network: use it with --kind finetune")
@@ -105,6 +106,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     acfg = AdaptorConfig(kind=cfg.kind, control="label" if cfg.task == "actions" else "target", labels=list(classes),
                          control_dropout=cfg.control_dropout)
     model = AdaptedDenoiser(motor.net, acfg)
+    model.base_fingerprint = base_fingerprint(shipped_net)  # for --scratch too: it runs beside this base
     model.train()
     trainable = {n: p for n, p in model.named_parameters() if p.requires_grad}
     opt = torch.optim.AdamW(list(trainable.values()), lr=cfg.lr)
