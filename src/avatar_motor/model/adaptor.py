@@ -159,10 +159,10 @@ def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = Non
     if "base_fingerprint" not in meta:
         warnings.warn(f"{folder}: the adaptor does not record which base weights it was trained on (older format); "
                       "if the base was retrained since, retrain the adaptor", stacklevel=2)
-    elif meta["base_fingerprint"] != base_fingerprint(base):
+    model = AdaptedDenoiser(base, AdaptorConfig(**meta["adaptor"]))  # takes the base's fingerprint
+    if meta.get("base_fingerprint", model.base_fingerprint) != model.base_fingerprint:
         raise ValueError(f"{folder}: adaptor was trained on other weights of base model {meta.get('base_model')!r} "
                          "(the base was retrained since); retrain the adaptor with 'avatar-motor adapt' on this base")
-    model = AdaptedDenoiser(base, AdaptorConfig(**meta["adaptor"]))
     missing, unexpected = model.load_state_dict(weights, strict=False)
     expected = set(model.adaptor_state())
     if set(weights) != expected:

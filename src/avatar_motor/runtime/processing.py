@@ -139,7 +139,7 @@ def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.T
 def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2)):
     """How planted each foot is in each frame of seg (B, N, 267) after x0 (B, 267): 1 when low and
     slow, ramping linearly to 0 between the bounds of `height` (m above ground) and `speed` (m/s).
-    Returns (contacts (B, N, 2), per-frame horizontal foot steps (B, N, 2, 2))."""
+    Returns the contacts (B, N, 2)."""
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
     P = torch.cat((unpack(x0).joints[:, None], unpack(seg).joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
     step = (P[:, 1:] - P[:, :-1])[..., [0, 2]]
@@ -148,7 +148,7 @@ def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), spee
     def ramp(x, lo, hi):
         return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
 
-    return ramp(h, *height) * ramp(v, *speed), step
+    return ramp(h, *height) * ramp(v, *speed)
 
 
 def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = None,
@@ -165,7 +165,7 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
     purpose (turn_toward's) and is not undone."""
     B, N, _ = seg.shape
     u = unpack(seg)
-    c, _ = foot_contacts(x0, seg)  # (B, N, 2)
+    c = foot_contacts(x0, seg)  # (B, N, 2)
     if where is not None:
         c = c * where.to(c.dtype)[:, None, None]
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
@@ -178,8 +178,8 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
     R = rot.yaw_matrix((back * c.amin(-1) * on).cumsum(1))  # (B, N, 3, 3): each frame's turn back
     pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
     t = pivot - (R @ pivot[..., None])[..., 0]  # turn about the pelvis
-    turned = torch.einsum("bnij,bnfj->bnfi", R, P[:, 1:]) + t[:, :, None]
-    step = (turned - torch.cat((P[:, :1], turned[:, :-1]), 1))[..., [0, 2]]  # (B, N, 2, 2)
+    feet_now = torch.einsum("bnij,bnfj->bnfi", R, P[:, 1:]) + t[:, :, None]  # the feet after the turn back
+    step = (feet_now - torch.cat((P[:, :1], feet_now[:, :-1]), 1))[..., [0, 2]]  # (B, N, 2, 2)
     d = -(c[..., None] * step).sum(2) / c.sum(2, keepdim=True).clamp(min=1.0)  # (B, N, 2)
     t[..., [0, 2]] += d.cumsum(1)
     return _move_frames(x0, u, R, t)
@@ -201,7 +201,7 @@ def turn_toward(x0: torch.Tensor, seg: torch.Tensor, goal_yaw: torch.Tensor, max
     u = unpack(seg)
     err = goal_yaw.to(seg.dtype) - facing_yaw(u.joints[:, -1])
     err = torch.atan2(torch.sin(err), torch.cos(err))  # wrapped to (-pi, pi]
-    free = 1.0 - foot_contacts(x0, seg)[0].amin(-1)  # (B, N): 0 in double support
+    free = 1.0 - foot_contacts(x0, seg).amin(-1)  # (B, N): 0 in double support
     free = torch.where(free.sum(1, keepdim=True) > 0.5, free, torch.ones_like(free))
     limit = max_rate * free.sum(1) / FPS  # each frame turns at most max_rate / FPS
     total = torch.minimum(torch.maximum(err - err.clamp(-tolerance, tolerance), -limit), limit)  # errors within tolerance stay

@@ -16,7 +16,7 @@ from ..data.motion_state import SLICES
 from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint, save_adaptor
 from ..model.checkpoint import load_checkpoint
 from .losses import motion_loss
-from .trainer import resolve_caches
+from .trainer import EMA, resolve_caches
 
 
 @dataclass
@@ -110,7 +110,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     model.train()
     trainable = {n: p for n, p in model.named_parameters() if p.requires_grad}
     opt = torch.optim.AdamW(list(trainable.values()), lr=cfg.lr)
-    ema = {n: p.detach().clone() for n, p in trainable.items()}
+    ema = EMA(trainable, cfg.ema_decay)
     gen = torch.Generator().manual_seed(cfg.seed)
     label_index = {c: k for k, c in enumerate(classes)}
 
@@ -150,10 +150,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         opt.step()
-        with torch.no_grad():
-            keep = cfg.ema_decay if step >= cfg.ema_start else 0.0
-            for n, p in trainable.items():
-                ema[n].mul_(keep).add_(p.detach(), alpha=1.0 - keep)
+        ema.update(trainable, active=step >= cfg.ema_start)
         log.append(float(losses["loss"].detach()))
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
@@ -162,6 +159,6 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
             "licence": motor.config.get("licence", "")}
     with torch.no_grad():
         for n, p in trainable.items():
-            p.copy_(ema[n])
+            p.copy_(ema.shadow[n])
     model.eval()
     return save_adaptor(out / "adaptor", model, motor.name, info)

@@ -83,13 +83,16 @@ def resolve_caches(names: list[str]) -> list[Path]:
 
 
 class EMA:
-    def __init__(self, net: torch.nn.Module, decay: float):
+    """Moving average of named tensors: a network's state_dict, or an adaptor's trainable
+    parameters (train/adapt.py). Until `active`, the average is a copy."""
+
+    def __init__(self, tensors: dict[str, torch.Tensor], decay: float):
         self.decay = decay
-        self.shadow = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        self.shadow = {k: v.detach().clone() for k, v in tensors.items()}
 
     @torch.no_grad()
-    def update(self, net: torch.nn.Module, active: bool) -> None:
-        for k, v in net.state_dict().items():
+    def update(self, tensors: dict[str, torch.Tensor], active: bool) -> None:
+        for k, v in tensors.items():
             if active and v.dtype.is_floating_point:
                 self.shadow[k].mul_(self.decay).add_(v.detach(), alpha=1 - self.decay)
             else:
@@ -136,7 +139,7 @@ class Trainer:
             self._warm_start(cfg.init)
         self.diffusion = Diffusion(cfg.diffusion_steps)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        self.ema = EMA(self.net, cfg.ema_decay)
+        self.ema = EMA(self.net.state_dict(), cfg.ema_decay)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.step = 0
         self.model = self.net
@@ -217,7 +220,7 @@ class Trainer:
         losses["loss"].backward()
         self.opt.step()
         self.step += 1
-        self.ema.update(self.net, active=self.step > cfg.ema_start)
+        self.ema.update(self.net.state_dict(), active=self.step > cfg.ema_start)
         out = torch.stack([v.detach() for v in losses.values()])
         if self.world > 1:  # report the global batch's losses, not this rank's half
             dist.all_reduce(out)
