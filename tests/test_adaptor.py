@@ -151,6 +151,22 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
             ad = load_adaptor(adapt(cfg, progress=False), net)
             norms[decay] = sum(float(p.detach().norm()) for p in ad.zero.parameters())
         assert 0 < norms[0.9] < norms[0.0]
+        # a cosine schedule takes smaller steps as it goes: the same run ends nearer its start
+        cfg = AdaptConfig(base=str(tmp_path / "tiny"), data=["labelled"], task="reach", steps=3, batch=4, split="all",
+                          out=str(tmp_path / "cosine"), ema_decay=0.0, lr_schedule="cosine")
+        ad = load_adaptor(adapt(cfg, progress=False), net)
+        assert 0 < sum(float(p.detach().norm()) for p in ad.zero.parameters()) < norms[0.0]
+
+
+def test_cosine_schedule_runs_on_steps_or_on_wall_time():
+    from avatar_motor.train.adapt import AdaptConfig, _progress
+    assert _progress(50, AdaptConfig(steps=100), seconds=1e6) == 0.5  # no time limit: steps count
+    timed = AdaptConfig(steps=100000, max_minutes=10)
+    assert _progress(50, timed, seconds=300) == 0.5  # a time-limited run: the clock counts
+    assert _progress(50, timed, seconds=900) == 1.0
+    with pytest.raises(ValueError, match="lr-schedule"):
+        from avatar_motor.train.adapt import adapt
+        adapt(AdaptConfig(lr_schedule="step"), progress=False)
 
 
 def test_a_reaching_avatar_faces_its_target_until_it_is_near(tmp_path):
@@ -168,6 +184,10 @@ def test_a_reaching_avatar_faces_its_target_until_it_is_near(tmp_path):
     assert torch.allclose(crowd._facing_goal(a)[[0, 2]], way / way.norm(), atol=1e-6)
     crowd.set_target(i, (float(pelvis[0]) + 0.3, float(pelvis[1])))
     assert crowd._facing_goal(a) is None  # near: it may step there any way it likes
+    a.target = pelvis + torch.tensor([0.8, 0.0])  # the target drifts off a little: still near (hysteresis)
+    assert crowd._facing_goal(a) is None
+    a.target = pelvis + torch.tensor([1.2, 0.0])  # beyond twice the threshold: faced again
+    assert torch.allclose(crowd._facing_goal(a), torch.tensor([1.0, 0.0, 0.0]))
     crowd.set_goal(i, (0.0, 1.0), facing=(1.0, 0.0))
     assert torch.allclose(crowd._facing_goal(a), torch.tensor([1.0, 0.0, 0.0]))  # a user's facing goal wins
 

@@ -178,3 +178,20 @@ def test_record_and_events_downloads(server):
     with pytest.raises(urllib.error.HTTPError) as e:
         urllib.request.urlopen(f"{base}/api/record?avatar=0&format=fbx", timeout=10)
     assert e.value.code == 400
+
+
+def test_target_command_drives_a_served_reaching_adaptor_at_its_scale(tmp_path):
+    from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig
+    from avatar_motor.serve.protocol import ProtocolError, validate_command
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    world = World(motor, adaptor=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
+    i = world.apply({"type": "spawn"})["avatar"]
+    world.apply(validate_command({"type": "target", "avatar": i, "position": [2.0, 1.0], "scale": 0.7}))
+    a = world.crowd.avatars[i]
+    assert a.target.tolist() == [2.0, 1.0] and a.control_scale == pytest.approx(0.7)
+    assert i not in world.targets  # the adaptor walks there, not the velocity magnet
+    with pytest.raises(ProtocolError, match="scale"):
+        validate_command({"type": "target", "avatar": i, "position": [2.0, 1.0], "scale": 11})
+    world.apply(validate_command({"type": "target", "avatar": i, "position": None}))
+    assert a.target is None

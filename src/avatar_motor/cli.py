@@ -363,6 +363,7 @@ def _adapt(a) -> int:
         cfg.swap_initial = a.swap_initial
     if a.ema_decay is not None:
         cfg.ema_decay = a.ema_decay
+    cfg.lr_schedule = a.lr_schedule
     path = adapt(cfg)
     print(f"adaptor written to {path}")
     return 0
@@ -488,6 +489,8 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--clips-per-class", type=int, default=0, help="few-shot: first N clips of each class (0 = all)")
     ad.add_argument("--steps", type=int, default=2000)
     ad.add_argument("--lr", type=float, default=1e-4, help="AdamW learning rate (PRIMAL: 1e-4)")
+    ad.add_argument("--lr-schedule", choices=("constant", "cosine"), default="constant",
+                    help="constant (PRIMAL), or cosine: the rate falls to 0 over --steps, or over --max-minutes when set")
     ad.add_argument("--max-minutes", type=float, default=0.0, help="stop after this much wall time (0 = no limit)")
     ad.add_argument("--batch", type=int)
     ad.add_argument("--seed", type=int, default=0)

@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import re
+import sys
 import tarfile
 import time
 import zipfile
@@ -200,7 +201,8 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
             yield key, stamp, load()
 
     stamps = {}
-    bar = tqdm(desc=f"import {name}", unit="clip", disable=not progress)
+    # into a log file (not a terminal) a progress line every 10 s, not ten a second
+    bar = tqdm(desc=f"import {name}", unit="clip", disable=not progress, mininterval=0.1 if sys.stderr.isatty() else 10)
     # spawn, not fork: a forked child of a process whose torch thread pool already ran can deadlock
     pool = (ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
             if workers > 1 else _InProcess())

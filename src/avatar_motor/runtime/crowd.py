@@ -85,6 +85,9 @@ class RuntimeConfig:
     # eval reach (45 x 8 targets x 2 s, a 1,686-step adaptor): 0 -> 0.5: minimal pelvis distance
     # 0.081 -> 0.045 m, ASR 0.091 -> 0.106
     face_target_beyond: float = 0.5
+    # a reaching adaptor learned "be there at the segment's end" (0.5 s): a far target asks for a
+    # run. Beyond this distance (m; 0 = off) it is given a waypoint this far along the way instead
+    reach_step: float = 0.0
     # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
     move_weight: float = 0.0  # PRIMAL's L_move (mean joint velocity); 50 with path 40 was our earlier default
     path_weight: float = 0.0  # our L_path (centroid travels at the goal velocity)
@@ -104,6 +107,7 @@ class AvatarState:
     label: int | None = None  # action label index of the adaptor
     control_scale: float = 1.0  # the adaptor's strength for this avatar's label or target (CFG weight)
     target: torch.Tensor | None = None  # (2,) world x, z for a reaching adaptor
+    near_target: bool = False  # came within face_target_beyond of it: no facing goal until 2x that away
     epoch: int = 0  # bumped by every interruption
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
 
@@ -222,6 +226,7 @@ class Crowd:
                 raise ValueError("no reaching adaptor loaded (avatar-motor adapt reach, then --adaptor DIR)")
             _check_scale(scale)
             a.target, a.control_scale = validate_vector(position, 2, "target (x, z)"), float(scale)
+        a.near_target = False
         self.interrupt(i)
 
     def impulse(self, i: int, preset: str, scale: float = 1.0) -> None:
@@ -316,7 +321,10 @@ class Crowd:
         x = a.queue[-1] if a.queue else a.state
         d = a.target - x[SLICES["joints"]][[0, 2]]  # target - pelvis, horizontal
         n = float(d.norm())
-        return torch.tensor([d[0] / n, 0.0, d[1] / n]) if n > self.cfg.face_target_beyond else None
+        # hysteresis: a body standing near the threshold would otherwise switch its facing goal
+        # on and off from segment to segment; a target that moves off again is faced again
+        a.near_target = n <= self.cfg.face_target_beyond * (2.0 if a.near_target else 1.0)
+        return None if a.near_target else torch.tensor([d[0] / n, 0.0, d[1] / n])
 
     @torch.inference_mode()
     def compute(self, job) -> torch.Tensor:
@@ -388,6 +396,9 @@ class Crowd:
                 if tg is not None:
                     local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
                     y[k] = local[[0, 2]]
+                    n = float(y[k].norm())
+                    if self.cfg.reach_step > 0 and n > self.cfg.reach_step:
+                        y[k] *= self.cfg.reach_step / n
             scale = torch.tensor([s if tg is not None else 0.0 for tg, s in zip(job["targets"], job["control_scales"])])
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)

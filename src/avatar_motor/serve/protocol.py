@@ -56,7 +56,7 @@ _FIELDS = {
               "facing": lambda v: None if v is None else _vec(v, 2, "facing (fx, fz)")}),
     "target": ({"avatar": lambda v: _int(v, "avatar")},
                {"position": lambda v: None if v is None else _vec(v, 2, "position (x, z m)", -1000, 1000),
-                "speed": lambda v: _num(v, "speed", 0.1, 6)}),
+                "speed": lambda v: _num(v, "speed", 0.1, 6), "scale": lambda v: _num(v, "scale", 0, 10)}),
     "label": ({"avatar": lambda v: _int(v, "avatar"), "label": lambda v: None if v is None else _str(v, "label")},
               {"scale": lambda v: _num(v, "scale", 0, 10)}),
     "reset": ({}, {"avatar": lambda v: _int(v, "avatar")}),

@@ -106,7 +106,7 @@ class World:
         pos = cmd.get("position")
         ad = self.crowd.adaptor
         if ad is not None and ad.cfg.control == "target":  # a reaching adaptor walks there by itself
-            self.crowd.set_target(i, pos)
+            self.crowd.set_target(i, pos, float(cmd.get("scale", 1.0)))
             return
         if pos is None:
             self.targets.pop(i, None)

@@ -4,6 +4,7 @@ dropout for classifier-free guidance."""
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -50,12 +51,23 @@ class AdaptConfig:
     # wander, and two runs of one recipe ended at R-precision 0.92 and 0.63 without it
     ema_decay: float = 0.999
     ema_start: int = 1000  # steps before the average starts tracking
+    # "cosine": the learning rate falls from lr to 0 over the run (over max_minutes of wall time
+    # when that limit is set, as a time-limited run does not know its step count); "constant": lr throughout
+    lr_schedule: str = "constant"
 
 
 def target_of(x: torch.Tensor) -> torch.Tensor:
     """The reaching target of a canonical window: pelvis XZ of its last frame."""
     J = x[:, -1, SLICES["joints"]].reshape(-1, 22, 3)
     return J[:, 0, [0, 2]]
+
+
+def _progress(step: int, cfg: AdaptConfig, seconds: float) -> float:
+    """How far through its run a training is, in [0, 1]: by steps, or by wall time when limited."""
+    done = step / max(1, cfg.steps)
+    if cfg.max_minutes:
+        done = max(done, seconds / (cfg.max_minutes * 60))
+    return min(1.0, done)
 
 
 def _label_filter(caches: list[MotionCache], cfg: AdaptConfig, classes: list[str]):
@@ -83,6 +95,8 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         raise ValueError(f"--ema-decay must be in [0, 1), not {cfg.ema_decay}")
     if not 0.0 <= cfg.swap_initial <= 1.0:
         raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
+    if cfg.lr_schedule not in ("constant", "cosine"):
+        raise ValueError(f"--lr-schedule must be 'constant' or 'cosine', not {cfg.lr_schedule!r}")
     torch.manual_seed(cfg.seed)
     motor = load_checkpoint(cfg.base)
     shipped_net = motor.net  # the base the adaptor is used with (and recorded against)
@@ -125,6 +139,9 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     for step in bar:
         if cfg.max_minutes and time.time() - t0 > cfg.max_minutes * 60:
             break
+        if cfg.lr_schedule == "cosine":
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * _progress(step, cfg, time.time() - t0)))
         x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
         if cfg.task == "actions":
             y = labels_of(clip)
@@ -155,7 +172,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
     info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
-            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay,
+            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule,
             "licence": motor.config.get("licence", "")}
     with torch.no_grad():
         for n, p in trainable.items():
