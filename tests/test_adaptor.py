@@ -127,6 +127,10 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert json.loads((tmp_path / "ad" / "adapt_config.json").read_text())["swap_initial"] == 1.0
         assert main(args[:-4] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
         assert main(args[:-1] + ["1.5"]) == 2  # a swap fraction above 1
+        # the neighbour swap runs end to end (partners of another class found among near states)
+        assert main(args + ["--swap-neighbours", "4", "--out", str(tmp_path / "nn")]) == 0
+        assert json.loads((tmp_path / "nn" / "adaptor" / "adaptor.json").read_text())["swap_neighbours"] == 4
+        assert main(args + ["--swap-neighbours", "-1"]) == 2
         # Table A3 end to end: the evaluator, the table and the confusion matrix. Its initial states
         # come from held-out clips: add one (a file name whose hash falls in the held-out split)
         from avatar_motor.data.cache import is_held_out
@@ -272,3 +276,17 @@ def test_scale_per_row_as_the_runtime_passes_it(kind):
     assert out.shape == x.shape
     for k, s in enumerate([0.0, 1.0, 2.0]):
         assert torch.allclose(out[k], m(t[k:k + 1], x[k:k + 1], x0[k:k + 1], y[k:k + 1], scale=s)[0], atol=1e-5)
+
+
+def test_neighbour_swap_partners_are_near_states_of_other_clips():
+    from avatar_motor.train.adapt import _NeighbourPool
+    pool = object.__new__(_NeighbourPool)  # the search alone, on made-up features
+    pool.feats = torch.tensor([[0.0], [0.1], [0.2], [5.0], [5.1]])
+    pool.clip = torch.tensor([0, 1, 2, 3, 4])
+    pool.features = lambda x: x
+    g = torch.Generator().manual_seed(0)
+    picks = {int(pool.partners(torch.tensor([[0.0]]), torch.tensor([0]), 2, g)) for _ in range(40)}
+    assert picks == {1, 2}  # the two nearest, never its own clip (0), never the far ones
+    odd = lambda clips: (clips % 2 == 1)[None]  # noqa: E731 - e.g. "of another class"
+    picks = {int(pool.partners(torch.tensor([[0.0]]), torch.tensor([0]), 2, g, odd)) for _ in range(40)}
+    assert picks == {1, 3}

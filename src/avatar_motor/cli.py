@@ -364,6 +364,7 @@ def _adapt(a) -> int:
     if a.ema_decay is not None:
         cfg.ema_decay = a.ema_decay
     cfg.lr_schedule = a.lr_schedule
+    cfg.swap_neighbours = a.swap_neighbours
     path = adapt(cfg)
     print(f"adaptor written to {path}")
     return 0
@@ -496,6 +497,9 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--seed", type=int, default=0)
     ad.add_argument("--out", default="runs/adapt")
     ad.add_argument("--scratch", action="store_true", help="baseline: train a fresh network (with --kind finetune)")
+    ad.add_argument("--swap-neighbours", type=int, default=0, metavar="K",
+                    help="swap in the initial state of one of the K windows whose initial states are nearest to the window's own "
+                         "(0 = any window): the swapped state nearly continues into the motion")
     ad.add_argument("--swap-initial", type=float,
                     help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
                          "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")

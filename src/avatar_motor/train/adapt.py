@@ -14,6 +14,7 @@ import torch
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..data.motion_state import SLICES
+from ..body.skeleton import SHAPE_DIM
 from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint, save_adaptor
 from ..model.checkpoint import load_checkpoint
 from .losses import motion_loss
@@ -45,6 +46,12 @@ class AdaptConfig:
     # redundant and the adaptor ignores it from any other state (measured, 5 Bandai classes, 30 min:
     # R-precision 0.227 with 0, 0.920 with 0.5, 45 held-out states x 5 labels)
     swap_initial: float = 0.5
+    # our addition: 0 swaps in the initial state of any window; K > 0 the state of one of the K
+    # windows (of other clips) whose initial states are nearest to the window's own (canonical joint
+    # positions and velocities), so the swapped state nearly continues into the window's motion:
+    # the network learns the control without learning to jump from its initial state
+    swap_neighbours: int = 0
+    swap_pool: int = 30000  # windows searched for neighbours (a random subset of a large dataset)
     max_minutes: float = 0.0  # stop early after this much wall time (0 = run all steps)
     # the saved adaptor is an exponential moving average of the trained weights (0 = the last
     # weights), as the base model's training does: at batch 16 and lr 3e-4 the last weights
@@ -68,6 +75,38 @@ def _progress(step: int, cfg: AdaptConfig, seconds: float) -> float:
     if cfg.max_minutes:
         done = max(done, seconds / (cfg.max_minutes * 60))
     return min(1.0, done)
+
+
+class _NeighbourPool:
+    """Initial-state features of a random subset of the dataset's windows (each with its mirroring
+    fixed), for finding a window whose initial state resembles a given one."""
+    FEATURES = torch.cat([torch.arange(SLICES["joints"].start, SLICES["joints"].stop),
+                          torch.arange(SLICES["velocities"].start, SLICES["velocities"].stop)])
+
+    def __init__(self, ds: SegmentDataset, norm, n: int, gen: torch.Generator):
+        self.ds = ds
+        self.index = torch.randperm(len(ds.window_starts), generator=gen)[:n]
+        self.mirror = torch.rand(len(self.index), generator=gen) < 0.5 if ds.cfg.mirror else torch.zeros(len(self.index), dtype=torch.bool)
+        feats = []
+        for idx, mir in zip(self.index.split(2048), self.mirror.split(2048)):
+            x, _ = ds.windows(ds.window_starts[idx], gen, shapes=torch.zeros(len(idx), SHAPE_DIM), mirror=mir)
+            feats.append(self.features(norm.encode(x[:, 0])))
+        self.feats = torch.cat(feats)
+        self.clip = ds.window_clip[self.index]
+
+    def features(self, x0n: torch.Tensor) -> torch.Tensor:
+        return x0n[:, self.FEATURES]
+
+    def partners(self, x0n: torch.Tensor, clips: torch.Tensor, k: int, gen: torch.Generator, allowed=None) -> torch.Tensor:
+        """For each normalised initial state, a random one of its k nearest pool entries of another
+        clip (and, if given, allowed(pool clips) -> (B, pool) bool). Returns pool positions."""
+        d = torch.cdist(self.features(x0n), self.feats)
+        banned = self.clip[None] == clips[:, None]
+        if allowed is not None:
+            banned |= ~allowed(self.clip)
+        d[banned] = float("inf")
+        near = d.topk(min(k, d.shape[1]), largest=False).indices
+        return near[torch.arange(len(near)), torch.randint(near.shape[1], (len(near),), generator=gen)]
 
 
 def _label_filter(caches: list[MotionCache], cfg: AdaptConfig, classes: list[str]):
@@ -95,6 +134,8 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         raise ValueError(f"--ema-decay must be in [0, 1), not {cfg.ema_decay}")
     if not 0.0 <= cfg.swap_initial <= 1.0:
         raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
+    if cfg.swap_neighbours < 0:
+        raise ValueError(f"--swap-neighbours is a count of windows (0 = any window), not {cfg.swap_neighbours}")
     if cfg.lr_schedule not in ("constant", "cosine"):
         raise ValueError(f"--lr-schedule must be 'constant' or 'cosine', not {cfg.lr_schedule!r}")
     torch.manual_seed(cfg.seed)
@@ -130,6 +171,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
 
     def labels_of(clips: torch.Tensor) -> torch.Tensor:
         return torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clips])
+    pool = _NeighbourPool(ds, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "adapt_config.json").write_text(json.dumps(asdict(cfg), indent=1))
@@ -151,14 +193,25 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         x0n = xn[:, 0]
         drop = torch.rand(cfg.batch, generator=gen) < cfg.control_dropout
         if cfg.swap_initial > 0:
-            other = torch.randint(len(ds.window_starts), (cfg.batch,), generator=gen)
             swap = (torch.rand(cfg.batch, generator=gen) < cfg.swap_initial) & ~drop  # the null control keeps its state
-            if cfg.task == "actions":  # only for a state of another class: a state of the commanded action is continued
-                swap &= labels_of(ds.window_clip[other]) != y
-            if swap.any():  # build only the swapped windows: this is the training loop's hot path
-                xo, _ = ds.windows(ds.window_starts[other[swap]], gen, shapes=shapes[swap])
-                x0n = x0n.clone()
-                x0n[swap] = motor.norm.encode(xo[:, 0])
+            if pool is not None:
+                rows = swap.nonzero()[:, 0]
+                allowed = None
+                if cfg.task == "actions":  # a state of another class (one of the commanded action is continued)
+                    allowed = lambda pool_clips, own=y[rows]: labels_of(pool_clips)[None] != own[:, None]  # noqa: E731
+                if len(rows):
+                    pick = pool.partners(x0n[rows], clip[rows], cfg.swap_neighbours, gen, allowed)
+                    xo, _ = ds.windows(ds.window_starts[pool.index[pick]], gen, shapes=shapes[rows], mirror=pool.mirror[pick])
+                    x0n = x0n.clone()
+                    x0n[rows] = motor.norm.encode(xo[:, 0])
+            else:
+                other = torch.randint(len(ds.window_starts), (cfg.batch,), generator=gen)
+                if cfg.task == "actions":  # only for a state of another class: a state of the commanded action is continued
+                    swap &= labels_of(ds.window_clip[other]) != y
+                if swap.any():  # build only the swapped windows: this is the training loop's hot path
+                    xo, _ = ds.windows(ds.window_starts[other[swap]], gen, shapes=shapes[swap])
+                    x0n = x0n.clone()
+                    x0n[swap] = motor.norm.encode(xo[:, 0])
         t = torch.randint(motor.diffusion.T, (cfg.batch,), generator=gen)
         noise = torch.randn(xn[:, 1:].shape, generator=gen)
         x_t = motor.diffusion.q_sample(xn[:, 1:], t, noise)
@@ -172,7 +225,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
     info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
-            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule,
+            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours,
             "licence": motor.config.get("licence", "")}
     with torch.no_grad():
         for n, p in trainable.items():
