@@ -97,13 +97,14 @@ class _NeighbourPool:
     def features(self, x0n: torch.Tensor) -> torch.Tensor:
         return x0n[:, self.FEATURES]
 
-    def partners(self, x0n: torch.Tensor, clips: torch.Tensor, k: int, gen: torch.Generator, allowed=None) -> torch.Tensor:
+    def partners(self, x0n: torch.Tensor, clips: torch.Tensor, k: int, gen: torch.Generator,
+                 allowed: torch.Tensor | None = None) -> torch.Tensor:
         """For each normalised initial state, a random one of its k nearest pool entries of another
-        clip (and, if given, allowed(pool clips) -> (B, pool) bool). Returns pool positions."""
+        clip (and, if given, where allowed (B, pool) is true). Returns pool positions."""
         d = torch.cdist(self.features(x0n), self.feats)
         banned = self.clip[None] == clips[:, None]
         if allowed is not None:
-            banned |= ~allowed(self.clip)
+            banned |= ~allowed
         d[banned] = float("inf")
         near = d.topk(min(k, d.shape[1]), largest=False).indices
         return near[torch.arange(len(near)), torch.randint(near.shape[1], (len(near),), generator=gen)]
@@ -172,6 +173,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     def labels_of(clips: torch.Tensor) -> torch.Tensor:
         return torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clips])
     pool = _NeighbourPool(ds, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
+    pool_labels = labels_of(pool.clip) if pool is not None and cfg.task == "actions" else None
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "adapt_config.json").write_text(json.dumps(asdict(cfg), indent=1))
@@ -196,10 +198,9 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
             swap = (torch.rand(cfg.batch, generator=gen) < cfg.swap_initial) & ~drop  # the null control keeps its state
             if pool is not None:
                 rows = swap.nonzero()[:, 0]
-                allowed = None
-                if cfg.task == "actions":  # a state of another class (one of the commanded action is continued)
-                    allowed = lambda pool_clips, own=y[rows]: labels_of(pool_clips)[None] != own[:, None]  # noqa: E731
                 if len(rows):
+                    # actions: a state of another class (one of the commanded action is continued)
+                    allowed = pool_labels[None] != y[rows][:, None] if cfg.task == "actions" else None
                     pick = pool.partners(x0n[rows], clip[rows], cfg.swap_neighbours, gen, allowed)
                     xo, _ = ds.windows(ds.window_starts[pool.index[pick]], gen, shapes=shapes[rows], mirror=pool.mirror[pick])
                     x0n = x0n.clone()
