@@ -254,7 +254,7 @@ def test_adaptation_evals_run_on_tiny_models(tmp_path):
     assert rollouts["ours"]["wave"].shape == (2, 31, 267)
     reach = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
     rows, paths = eval_reach(motor, {"base": None, "ours": reach}, init[:, 0], shapes, seconds=0.5)
-    assert rows[1]["min_dist_m"] > 0 and paths["ours"].shape == (8, 2, 16, 2)
+    assert 0 < rows[1]["min_dist_m"] <= rows[1]["final_dist_m"] and paths["ours"].shape == (8, 2, 16, 2)
     from avatar_motor.viz import label_grid, target_paths
     from avatar_motor.eval.adaptation import TARGETS, canonical_joints
     label_grid({k: [canonical_joints(X)[0].reshape(-1, 22, 3).numpy()] for k, X in rollouts["ours"].items()}, tmp_path / "grid.png")

@@ -400,7 +400,7 @@ def _eval_adaptation(a) -> int:
         rows, paths = eval_reach(motor, methods, init, shapes, a.seconds or 2.0, a.seed, cfg, a.adaptor_scale)
         print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s, "
                           f"adaptor scale {a.adaptor_scale:g}",
-                          rows, ["min_dist_m", "ASR", "ANCR"]))
+                          rows, ["min_dist_m", "final_dist_m", "ASR", "ANCR"]))
         if a.png:
             target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
             print(f"pelvis paths: {a.png}")

@@ -5,7 +5,8 @@
   fraction of generated motions whose nearest label embedding is the commanded label.
 - `eval actions`: 3-s rollouts per label from held-out initial states, for every adaptor given.
 - `eval reach`: 2-s rollouts to targets at (+-1.5, 0), (0, +-1.5), (+-1, 0), (0, +-1) m relative to
-  the initial pelvis (in its body frame); minimal pelvis distance to the target.
+  the initial pelvis (in its body frame); minimal pelvis distance to the target (PRIMAL's), and
+  the distance at the end (ours: an avatar that overshoots scores well on the first only).
 """
 from __future__ import annotations
 
@@ -141,20 +142,22 @@ def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0,
     tf = canonical_transform(init.double())
     rows, paths = [], {}
     for name, ad in adaptors.items():
-        dists, Js, local = [], [], []
+        dists, finals, Js, local = [], [], [], []
         for tx, tz in TARGETS:
             world = (tf.R.float() @ torch.tensor([tx, 0.0, tz]) + tf.t.float())[:, [0, 2]]  # (n, 2)
             setup = (lambda crowd, i, k, world=world: crowd.set_target(i, world[k].tolist(), scale)) if ad is not None else (lambda *_: None)
             X = _rollout(motor, ad, init, shapes, int(seconds * FPS), setup, seed, cfg)
             J = joints_of(X)
-            d = (J[:, :, 0, [0, 2]] - world[:, None]).norm(dim=-1).amin(1)
-            dists.append(d)
+            d = (J[:, :, 0, [0, 2]] - world[:, None]).norm(dim=-1)
+            dists.append(d.amin(1))
+            finals.append(d[:, -1])  # where it ends up: a body that walks through the target is not there
             Js.append(J)
             pel = J[:, :, 0].double() - tf.t[:, None]
             local.append((pel @ tf.R)[..., [0, 2]].float())  # R^T p per frame
         J = torch.cat(Js)
         paths[name] = torch.stack(local)
-        rows.append({"method": name, "min_dist_m": float(torch.cat(dists).mean()), "ASR": M.asr(J), "ANCR": M.ancr(J)})
+        rows.append({"method": name, "min_dist_m": float(torch.cat(dists).mean()), "final_dist_m": float(torch.cat(finals).mean()),
+                     "ASR": M.asr(J), "ANCR": M.ancr(J)})
     return rows, paths
 
 

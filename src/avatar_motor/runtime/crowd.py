@@ -367,8 +367,8 @@ class Crowd:
             # locking its feet would stop the avatar (measured: 0.03 m instead of 1.8 m in 4 s)
             gliding = cfg.move_weight > 0 or cfg.path_weight > 0
             seg = lock_feet(x0c, seg, where=torch.tensor([v is None or not gliding for v in job["v_goal"]]),
-                            yaw=torch.tensor([cfg.lock_yaw and (f is not None or tg is not None)
-                                              for f, tg in zip(job["facing_goal"], job["targets"])]), turned=turned)
+                            yaw=torch.tensor([cfg.lock_yaw and (f is not None or (tg is not None and s > 0))  # scale 0: the base model
+                                              for f, tg, s in zip(job["facing_goal"], job["targets"], job["control_scales"])]), turned=turned)
         if cfg.smooth_sigma > 0:
             seg = smooth_segment(x0c, seg, self._smoothing(x0c, seg))
         if cfg.snap:

@@ -49,7 +49,8 @@ class AdaptConfig:
     # our addition: 0 swaps in the initial state of any window; K > 0 the state of one of the K
     # windows (of other clips) whose initial states are nearest to the window's own (canonical joint
     # positions and velocities), so the swapped state nearly continues into the window's motion:
-    # the network learns the control without learning to jump from its initial state
+    # the network learns the control with less of a jump from its initial state. Measured (eval
+    # reach, 30 min): K = 0 (any, constant rate) 0.048 m / ASR 0.081; cosine rate: 128 0.035 / 0.069, 512 0.031 / 0.068
     swap_neighbours: int = 0
     swap_pool: int = 30000  # windows searched for neighbours (a random subset of a large dataset)
     max_minutes: float = 0.0  # stop early after this much wall time (0 = run all steps)
