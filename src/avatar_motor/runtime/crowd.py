@@ -87,9 +87,6 @@ class RuntimeConfig:
     # eval reach (45 x 8 targets x 2 s, a 1,686-step adaptor): 0 -> 0.5: minimal pelvis distance
     # 0.081 -> 0.045 m, ASR 0.091 -> 0.106
     face_target_beyond: float = 0.5
-    # a reaching adaptor learned "be there at the segment's end" (0.5 s): a far target asks for a
-    # run. Beyond this distance (m; 0 = off) it is given a waypoint this far along the way instead
-    reach_step: float = 0.0
     # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
     move_weight: float = 0.0  # PRIMAL's L_move (mean joint velocity); 50 with path 40 was our earlier default
     path_weight: float = 0.0  # our L_path (centroid travels at the goal velocity)
@@ -399,9 +396,6 @@ class Crowd:
                 if tg is not None:
                     local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
                     y[k] = local[[0, 2]]
-                    n = float(y[k].norm())
-                    if self.cfg.reach_step > 0 and n > self.cfg.reach_step:
-                        y[k] *= self.cfg.reach_step / n
             scale = torch.tensor([s if tg is not None else 0.0 for tg, s in zip(job["targets"], job["control_scales"])])
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
