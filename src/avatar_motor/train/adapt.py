@@ -11,10 +11,10 @@ from pathlib import Path
 
 import torch
 
+from ..body.skeleton import SHAPE_DIM
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..data.motion_state import SLICES
-from ..body.skeleton import SHAPE_DIM
 from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint, save_adaptor
 from ..model.checkpoint import load_checkpoint
 from .losses import motion_loss
@@ -48,9 +48,10 @@ class AdaptConfig:
     swap_initial: float = 0.5
     # our addition: 0 swaps in the initial state of any window; K > 0 the state of one of the K
     # windows (of other clips) whose initial states are nearest to the window's own (canonical joint
-    # positions and velocities), so the swapped state nearly continues into the window's motion:
-    # the network learns the control with less of a jump from its initial state. Measured (eval
-    # reach, 30 min): K = 0 (any, constant rate) 0.048 m / ASR 0.081; cosine rate: 128 0.035 / 0.069, 512 0.031 / 0.068
+    # positions and velocities), so the swapped state nearly continues into the window's motion.
+    # Measured (eval reach, 30 min): K = 0 (any, constant rate) 0.048 m / ASR 0.081; cosine rate:
+    # 128 0.035 / 0.069, 512 0.031 / 0.068. Its rollouts' raw seams are not smoother (acceleration
+    # across a seam without inertialization 81 m/s^2 vs 60 for K = 0): why it helps is not measured
     swap_neighbours: int = 0
     swap_pool: int = 30000  # windows searched for neighbours (a random subset of a large dataset)
     max_minutes: float = 0.0  # stop early after this much wall time (0 = run all steps)
@@ -85,7 +86,6 @@ class _NeighbourPool:
                           torch.arange(SLICES["velocities"].start, SLICES["velocities"].stop)])
 
     def __init__(self, ds: SegmentDataset, norm, n: int, gen: torch.Generator):
-        self.ds = ds
         self.index = torch.randperm(len(ds.window_starts), generator=gen)[:n]
         self.mirror = torch.rand(len(self.index), generator=gen) < 0.5 if ds.cfg.mirror else torch.zeros(len(self.index), dtype=torch.bool)
         feats = []
@@ -173,13 +173,13 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
 
     def labels_of(clips: torch.Tensor) -> torch.Tensor:
         return torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clips])
+    t0 = time.time()  # the neighbour search's set-up counts against --max-minutes too
     pool = _NeighbourPool(ds, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
     pool_labels = labels_of(pool.clip) if pool is not None and cfg.task == "actions" else None
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "adapt_config.json").write_text(json.dumps(asdict(cfg), indent=1))
     bar = tqdm(range(cfg.steps), desc=f"adapt {cfg.task} ({cfg.kind})", disable=not progress, mininterval=5)
-    t0 = time.time()
     log = []
     for step in bar:
         if cfg.max_minutes and time.time() - t0 > cfg.max_minutes * 60:
