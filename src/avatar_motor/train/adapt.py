@@ -196,24 +196,23 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         x0n = xn[:, 0]
         drop = torch.rand(cfg.batch, generator=gen) < cfg.control_dropout
         if cfg.swap_initial > 0:
+            if pool is None:
+                other = torch.randint(len(ds.window_starts), (cfg.batch,), generator=gen)
             swap = (torch.rand(cfg.batch, generator=gen) < cfg.swap_initial) & ~drop  # the null control keeps its state
-            if pool is not None:
-                rows = swap.nonzero()[:, 0]
-                if len(rows):
-                    # actions: a state of another class (one of the commanded action is continued)
+            # actions: only a state of another class (a state of the commanded action is continued)
+            if pool is None and cfg.task == "actions":
+                swap &= labels_of(ds.window_clip[other]) != y
+            rows = swap.nonzero()[:, 0]
+            if len(rows):  # build only the swapped windows: this is the training loop's hot path
+                if pool is None:
+                    starts, mirror = ds.window_starts[other[rows]], None
+                else:
                     allowed = pool_labels[None] != y[rows][:, None] if cfg.task == "actions" else None
                     pick = pool.partners(x0n[rows], clip[rows], cfg.swap_neighbours, gen, allowed)
-                    xo, _ = ds.windows(ds.window_starts[pool.index[pick]], gen, shapes=shapes[rows], mirror=pool.mirror[pick])
-                    x0n = x0n.clone()
-                    x0n[rows] = motor.norm.encode(xo[:, 0])
-            else:
-                other = torch.randint(len(ds.window_starts), (cfg.batch,), generator=gen)
-                if cfg.task == "actions":  # only for a state of another class: a state of the commanded action is continued
-                    swap &= labels_of(ds.window_clip[other]) != y
-                if swap.any():  # build only the swapped windows: this is the training loop's hot path
-                    xo, _ = ds.windows(ds.window_starts[other[swap]], gen, shapes=shapes[swap])
-                    x0n = x0n.clone()
-                    x0n[swap] = motor.norm.encode(xo[:, 0])
+                    starts, mirror = ds.window_starts[pool.index[pick]], pool.mirror[pick]
+                xo, _ = ds.windows(starts, gen, shapes=shapes[rows], mirror=mirror)
+                x0n = x0n.clone()
+                x0n[rows] = motor.norm.encode(xo[:, 0])
         t = torch.randint(motor.diffusion.T, (cfg.batch,), generator=gen)
         noise = torch.randn(xn[:, 1:].shape, generator=gen)
         x_t = motor.diffusion.q_sample(xn[:, 1:], t, noise)
