@@ -125,11 +125,16 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
     if task == "actions":
         assert m.cfg.labels == ["walk", "wave"]
         assert json.loads((tmp_path / "ad" / "adapt_config.json").read_text())["swap_initial"] == 1.0
+        # an action's handedness is kept (no mirrored windows) unless asked for
+        assert json.loads((tmp_path / "ad" / "adaptor" / "adaptor.json").read_text())["mirror"] is False
         assert main(args[:-4] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
         assert main(args[:-1] + ["1.5"]) == 2  # a swap fraction above 1
         # the neighbour swap runs end to end (partners of another class found among near states)
         assert main(args + ["--swap-neighbours", "4", "--out", str(tmp_path / "nn")]) == 0
-        assert json.loads((tmp_path / "nn" / "adaptor" / "adaptor.json").read_text())["swap_neighbours"] == 4
+        meta = json.loads((tmp_path / "nn" / "adaptor" / "adaptor.json").read_text())
+        assert meta["swap_neighbours"] == 4 and meta["mirror"] is False
+        assert main(args + ["--mirror", "--out", str(tmp_path / "mirrored")]) == 0
+        assert json.loads((tmp_path / "mirrored" / "adaptor" / "adaptor.json").read_text())["mirror"] is True
         assert main(args + ["--swap-neighbours", "-1"]) == 2
         # Table A3 end to end: the evaluator, the table and the confusion matrix. Its initial states
         # come from held-out clips: add one (a file name whose hash falls in the held-out split)
@@ -141,6 +146,7 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
                      "--data", "labelled", "--n", "2", "--seconds", "1", "--encoder-steps", "2"]) == 0
     else:
         assert main(args + ["--ema-decay", "1.0"]) == 2  # an average that never moves is named
+        assert json.loads((tmp_path / "ad" / "adaptor" / "adaptor.json").read_text())["mirror"] is True  # targets have no hand
         # the scratch baseline loads beside the base it was compared with (its fingerprint is that base's)
         assert main(args + ["--out", str(tmp_path / "scratch"), "--kind", "finetune", "--scratch"]) == 0  # the last --out counts
         load_adaptor(tmp_path / "scratch" / "adaptor", load_checkpoint(tmp_path / "tiny").net)
@@ -276,6 +282,25 @@ def test_scale_per_row_as_the_runtime_passes_it(kind):
     assert out.shape == x.shape
     for k, s in enumerate([0.0, 1.0, 2.0]):
         assert torch.allclose(out[k], m(t[k:k + 1], x[k:k + 1], x0[k:k + 1], y[k:k + 1], scale=s)[0], atol=1e-5)
+
+
+@pytest.mark.parametrize("kind,control", [("controlnet", "label"), ("omni", "target"), ("finetune", "label")])
+def test_scale_above_one_is_classifier_free_guidance(kind, control):
+    # Eq. (3): G(null) + gamma (G(y) - G(null)), the unconditional model being the adaptor with the
+    # null control; at 1 both readings are the trained adaptor, so the scale is continuous there
+    m = AdaptedDenoiser(base_net(), AdaptorConfig(kind=kind, control=control, labels=["a", "b"])).eval()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.01)
+    t, x, x0 = inputs()
+    y = torch.tensor([0, 1, 1]) if control == "label" else torch.tensor([[1.0, 0.5], [-2.0, 0.0], [0.0, 3.0]])
+    with torch.no_grad():
+        cond = m(t, x, x0, y, scale=1.0)
+        null = m(t, x, x0, y, scale=1.0, drop=torch.ones(3, dtype=torch.bool))
+        assert not torch.allclose(cond, null)
+        for gamma in (1.5, 3.0):
+            assert torch.allclose(m(t, x, x0, y, scale=gamma), null + gamma * (cond - null), atol=1e-5)
+        assert torch.allclose(m(t, x, x0, y, scale=1.0 + 1e-6), cond, atol=1e-4)
 
 
 def test_neighbour_swap_partners_are_near_states_of_other_clips():

@@ -365,6 +365,7 @@ def _adapt(a) -> int:
         cfg.ema_decay = a.ema_decay
     cfg.lr_schedule = a.lr_schedule
     cfg.swap_neighbours = a.swap_neighbours
+    cfg.mirror = a.mirror
     path = adapt(cfg)
     print(f"adaptor written to {path}")
     return 0
@@ -504,6 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
                          "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")
     ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
+    ad.add_argument("--mirror", action=argparse.BooleanOptionalAction,
+                    help="also train on left/right mirrored windows (default: for reach only; an action's handedness is part of it)")
     ad.add_argument("--ema-decay", type=float, help="the adaptor saved is this moving average of the weights, from step 1,000 on (default 0.999; 0 = the last weights)")
     ad.set_defaults(func=_adapt)
 

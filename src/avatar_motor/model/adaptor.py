@@ -9,8 +9,8 @@ Three methods, as compared in PRIMAL's Tables A3/A4:
 - "finetune": the control embedding is added to the time embedding and the whole base trains.
 The control is an action label (embedding layer, with a null label for classifier-free
 dropout) or a 2-D target (linear embedding; a mask stands for "no target").
-`scale` multiplies the adaptor's residuals: 0 gives the base model exactly, 1 the trained
-adaptor, above 1 a stronger effect (the CFG weight of Eq. 3 in its residual form).
+`scale` from 0 to 1 multiplies the adaptor's residuals: 0 gives the base model exactly, 1 the
+trained adaptor; above 1 it is the classifier-free guidance weight of Eq. 3 (see forward).
 Adaptor weights are saved on their own (safetensors + JSON), so many adaptors share one base.
 """
 from __future__ import annotations
@@ -94,7 +94,23 @@ class AdaptedDenoiser(nn.Module):
         e = self.embed(rescale_target(y))
         return e if drop is None else e * (~drop)[:, None].float()
 
-    def forward(self, t, x_t, x0, y, scale: float = 1.0, drop: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, t, x_t, x0, y, scale: float | torch.Tensor = 1.0, drop: torch.Tensor | None = None) -> torch.Tensor:
+        """scale (a number or one per row, (B, 1, 1)): from 0 (the base model) to 1 (the trained
+        adaptor) the adaptor's residuals are scaled; above 1 it is the classifier-free guidance
+        weight gamma of Eq. (3), G(null) + gamma (G(y) - G(null)), whose unconditional model is
+        this adaptor with the null control (control dropout trained it): a second pass, for the
+        rows that ask for it."""
+        s = torch.as_tensor(scale, dtype=x_t.dtype).reshape(-1, 1, 1).expand(len(x_t), 1, 1)
+        guided = (s > 1).flatten()
+        out = self._forward(t, x_t, x0, y, s.clamp(max=1.0), drop)
+        if guided.any():
+            r = guided.nonzero()[:, 0]
+            null = self._forward(t[r], x_t[r], x0[r], y[r], 1.0, torch.ones(len(r), dtype=torch.bool))
+            out = out.clone()
+            out[r] = out[r] + (s[r] - 1) * (out[r] - null)
+        return out
+
+    def _forward(self, t, x_t, x0, y, scale, drop: torch.Tensor | None) -> torch.Tensor:
         base = self.base
         cond = base.condition(t, x0)
         e = self.control_embedding(y, drop)

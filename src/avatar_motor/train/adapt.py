@@ -63,6 +63,11 @@ class AdaptConfig:
     # "cosine": the learning rate falls from lr to 0 over the run (over max_minutes of wall time
     # when that limit is set, as a time-limited run does not know its step count); "constant": lr throughout
     lr_schedule: str = "constant"
+    # left/right mirroring of the training windows; None: off for actions, on for reaching. A
+    # person's action has a handedness that is part of it (every Bandai guide points with the
+    # right hand: mirrored windows taught the adaptor a left-handed guide in half its rollouts,
+    # which the evaluator, trained on the real clips, reads as bow or byebye); a target has none
+    mirror: bool | None = None
 
 
 def target_of(x: torch.Tensor) -> torch.Tensor:
@@ -159,7 +164,8 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         keep = _label_filter(caches, cfg, classes)
     else:
         classes = []
-    ds = SegmentDataset(caches, SegmentConfig(split=cfg.split), clip_filter=keep)
+    mirrored = cfg.task == "reach" if cfg.mirror is None else cfg.mirror
+    ds = SegmentDataset(caches, SegmentConfig(split=cfg.split, mirror=mirrored), clip_filter=keep)
     acfg = AdaptorConfig(kind=cfg.kind, control="label" if cfg.task == "actions" else "target", labels=list(classes),
                          control_dropout=cfg.control_dropout)
     model = AdaptedDenoiser(motor.net, acfg)
@@ -226,7 +232,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
     info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
-            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours,
+            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours, "mirror": mirrored,
             "licence": motor.config.get("licence", "")}
     with torch.no_grad():
         for n, p in trainable.items():
