@@ -537,7 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--adaptor", help="adaptor folder from 'avatar-motor adapt' (labels or targets)")
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
     g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
-                   help="adaptor strength for labels and targets (classifier-free guidance weight; 0 = base model)")
+                   help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the classifier-free guidance weight (a second network pass)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
     _add_runtime_args(g)
     g.add_argument("--out", required=True)
@@ -576,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--encoder-steps", type=int, default=600)
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
         e.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
-                       help="adaptor strength (classifier-free guidance weight; 0 = base model)")
+                       help="adaptor strength: 0 = base model, 1 = as trained, above 1 the classifier-free guidance weight")
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float)
         _add_runtime_args(e)

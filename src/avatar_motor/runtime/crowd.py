@@ -199,7 +199,8 @@ class Crowd:
         self.interrupt(i)
 
     def set_label(self, i: int, label: str | None, scale: float = 1.0) -> None:
-        """Action label of the adaptor (None releases); scale 0 = base model, 1 = as trained."""
+        """Action label of the adaptor (None releases); scale 0 = base model, 1 = as trained, above 1
+        classifier-free guidance of that weight (AdaptedDenoiser.forward)."""
         a = self._get(i)
         if label is None:
             a.label = None
