@@ -65,8 +65,8 @@ class AdaptConfig:
     lr_schedule: str = "constant"
     # left/right mirroring of the training windows; None: off for actions, on for reaching. A
     # person's action has a handedness that is part of it (every Bandai guide points with the
-    # right hand: mirrored windows taught the adaptor a left-handed guide in half its rollouts,
-    # which the evaluator, trained on the real clips, reads as bow or byebye); a target has none
+    # right hand; with mirrored windows 21 of 45 guide rollouts used the left); a target has none.
+    # Measured (5 classes, 30 min): R-precision 0.844 without, 0.787 with (guide read 31 vs 13 of 45)
     mirror: bool | None = None
 
 
