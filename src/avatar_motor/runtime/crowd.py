@@ -110,6 +110,11 @@ class AvatarState:
     epoch: int = 0  # bumped by every interruption
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
 
+    @property
+    def reaching(self) -> bool:
+        """A reaching adaptor steers it: a target is set, at a scale above 0 (0 is the base model)."""
+        return self.target is not None and self.control_scale > 0
+
 
 def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: float = 0.0) -> torch.Tensor:
     """A neutral standing state (arms lowered, zero velocity) on the ground: an initial state that
@@ -310,13 +315,13 @@ class Crowd:
                 "impulse_velocity": dv, "impulse": impulse,
                 "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
                 "labels": [a.label for a in avs], "control_scales": [a.control_scale for a in avs],
-                "targets": [a.target for a in avs],
+                "targets": [a.target for a in avs], "reaching": [a.reaching for a in avs],
                 "v_goal": [a.v_goal for a in avs], "facing_goal": [self._facing_goal(a) for a in avs]}
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
         while it is farther than face_target_beyond."""
-        if a.facing_goal is not None or a.target is None or a.control_scale == 0 or self.cfg.face_target_beyond <= 0:
+        if a.facing_goal is not None or not a.reaching or self.cfg.face_target_beyond <= 0:
             return a.facing_goal
         x = a.queue[-1] if a.queue else a.state
         d = a.target - x[SLICES["joints"]][[0, 2]]  # target - pelvis, horizontal
@@ -365,8 +370,8 @@ class Crowd:
             # locking its feet would stop the avatar (measured: 0.03 m instead of 1.8 m in 4 s)
             gliding = cfg.move_weight > 0 or cfg.path_weight > 0
             seg = lock_feet(x0c, seg, where=torch.tensor([v is None or not gliding for v in job["v_goal"]]),
-                            yaw=torch.tensor([cfg.lock_yaw and (f is not None or (tg is not None and s > 0))  # scale 0: the base model
-                                              for f, tg, s in zip(job["facing_goal"], job["targets"], job["control_scales"])]), turned=turned)
+                            yaw=torch.tensor([cfg.lock_yaw and (f is not None or r) for f, r in zip(job["facing_goal"], job["reaching"])]),
+                            turned=turned)
         if cfg.smooth_sigma > 0:
             seg = smooth_segment(x0c, seg, self._smoothing(x0c, seg))
         if cfg.snap:
