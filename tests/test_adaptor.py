@@ -331,3 +331,23 @@ def test_a_reaching_avatar_near_its_target_keeps_the_yaw_lock(tmp_path, monkeypa
     crowd.set_target(near, (0.1, 0.1))
     crowd.step_segment()
     assert crowd._facing_goal(crowd.avatars[near]) is None and seen[-1] == [True, False]
+
+
+def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch):
+    # an action adaptor's transition from a foreign state twisted bodies on both planted feet
+    # (eval actions: ASR in the first second 0.15-0.25); at scale 0 it is the base model, unlocked
+    from avatar_motor.runtime import crowd as crowd_module
+    from .conftest_models import tiny_motor
+    seen = []
+    real = crowd_module.lock_feet
+    monkeypatch.setattr(crowd_module, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
+    motor = tiny_motor(tmp_path)
+    adaptor = AdaptedDenoiser(motor.net, AdaptorConfig(control="label", labels=["bow", "wave"])).eval()
+    crowd = crowd_module.Crowd(motor, adaptor=adaptor)
+    labelled, idle = crowd.spawn(position=(0.0, 0.0)), crowd.spawn(position=(3.0, 0.0))
+    crowd.set_label(labelled, "bow")
+    crowd.step_segment()
+    assert seen[-1] == [True, False]
+    crowd.set_label(labelled, "bow", 0.0)
+    crowd.step_segment()
+    assert seen[-1] == [False, False]
