@@ -395,14 +395,14 @@ class Crowd:
         return seg_w
 
     def _denoiser(self, job, tf, cond):
-        """The base network, or the adaptor with per-avatar controls (scale 0 where none is set,
-        which is the base model exactly)."""
+        """The base network, or the adaptor with per-avatar controls (scale 0 for the avatars it does
+        not steer, which is the base model exactly)."""
         net, ad = self.motor.net, self.adaptor
-        if ad is None or all(lb is None for lb in job["labels"]) and all(t is None for t in job["targets"]):
+        if ad is None or not any(job["adapted"]):
             return lambda x_t, t: net(t, x_t, cond)
+        scale = torch.tensor([s if on else 0.0 for on, s in zip(job["adapted"], job["control_scales"])])
         if ad.cfg.control == "label":
             y = torch.tensor([lb if lb is not None else ad.null_label for lb in job["labels"]])
-            scale = torch.tensor([s if lb is not None else 0.0 for lb, s in zip(job["labels"], job["control_scales"])])
         else:
             Rt = tf.R.transpose(-1, -2).float()
             y = torch.zeros(len(job["targets"]), 2)
@@ -410,7 +410,6 @@ class Crowd:
                 if tg is not None:
                     local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
                     y[k] = local[[0, 2]]
-            scale = torch.tensor([s if tg is not None else 0.0 for tg, s in zip(job["targets"], job["control_scales"])])
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
 
