@@ -317,14 +317,21 @@ def test_neighbour_swap_partners_are_near_states_of_other_clips():
     assert picks == {1, 3}
 
 
+def _yaw_locks_seen(monkeypatch) -> list:
+    """Records, per segment, which bodies foot locking was asked to hold against yaw."""
+    from avatar_motor.runtime import crowd as crowd_module
+    seen = []
+    real = crowd_module.lock_feet
+    monkeypatch.setattr(crowd_module, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
+    return seen
+
+
 def test_a_reaching_avatar_near_its_target_keeps_the_yaw_lock(tmp_path, monkeypatch):
     # near its target it has no facing goal, but it still must not twist on both planted feet
     # (measured, eval reach: ASR 0.106 -> 0.081 at the same distance)
     from avatar_motor.runtime import crowd as crowd_module
     from .conftest_models import tiny_motor
-    seen = []
-    real = crowd_module.lock_feet
-    monkeypatch.setattr(crowd_module, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
+    seen = _yaw_locks_seen(monkeypatch)
     motor = tiny_motor(tmp_path)
     crowd = crowd_module.Crowd(motor, adaptor=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
     near, idle = crowd.spawn(position=(0.0, 0.0)), crowd.spawn(position=(3.0, 0.0))
@@ -334,13 +341,11 @@ def test_a_reaching_avatar_near_its_target_keeps_the_yaw_lock(tmp_path, monkeypa
 
 
 def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch):
-    # an action adaptor's transition from a foreign state twisted bodies on both planted feet
-    # (eval actions: ASR in the first second 0.15-0.25); at scale 0 it is the base model, unlocked
+    # an action adaptor's turn from a foreign state skates (eval actions: ASR in the first second
+    # 0.15-0.25), partly by twisting on both planted feet; at scale 0 it is the base model, unlocked
     from avatar_motor.runtime import crowd as crowd_module
     from .conftest_models import tiny_motor
-    seen = []
-    real = crowd_module.lock_feet
-    monkeypatch.setattr(crowd_module, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
+    seen = _yaw_locks_seen(monkeypatch)
     motor = tiny_motor(tmp_path)
     adaptor = AdaptedDenoiser(motor.net, AdaptorConfig(control="label", labels=["bow", "wave"])).eval()
     crowd = crowd_module.Crowd(motor, adaptor=adaptor)

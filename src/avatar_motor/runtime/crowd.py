@@ -114,14 +114,14 @@ class AvatarState:
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
 
     @property
-    def reaching(self) -> bool:
-        """A reaching adaptor steers it: a target is set, at a scale above 0 (0 is the base model)."""
-        return self.target is not None and self.control_scale > 0
+    def adapted(self) -> bool:
+        """An adaptor steers it: a label or a target is set, at a scale above 0 (0 is the base model)."""
+        return (self.label is not None or self.target is not None) and self.control_scale > 0
 
     @property
-    def adapted(self) -> bool:
-        """An adaptor steers it: a label or a target is set, at a scale above 0."""
-        return (self.label is not None or self.target is not None) and self.control_scale > 0
+    def reaching(self) -> bool:
+        """A reaching adaptor steers it."""
+        return self.target is not None and self.adapted
 
 
 def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: float = 0.0) -> torch.Tensor:
