@@ -365,6 +365,7 @@ def _adapt(a) -> int:
         cfg.ema_decay = a.ema_decay
     cfg.lr_schedule = a.lr_schedule
     cfg.swap_neighbours = a.swap_neighbours
+    cfg.swap_data = a.swap_data or []
     cfg.mirror = a.mirror
     path = adapt(cfg)
     print(f"adaptor written to {path}")
@@ -504,6 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--swap-initial", type=float,
                     help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
                          "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")
+    ad.add_argument("--swap-data", nargs="*", metavar="CACHE",
+                    help="motion caches that supply the swapped-in initial states (first frames only, none of the commanded label; "
+                         "default: the adaptation data), e.g. the base model's data, so the adaptor learns to start from any state")
     ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
     ad.add_argument("--mirror", action=argparse.BooleanOptionalAction,
                     help="also train on left/right mirrored windows (default: for reach only; an action's handedness is part of it)")

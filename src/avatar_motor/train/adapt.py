@@ -54,6 +54,12 @@ class AdaptConfig:
     # across a seam without inertialization 81 m/s^2 vs 60 for K = 0): why it helps is not measured
     swap_neighbours: int = 0
     swap_pool: int = 30000  # windows searched for neighbours (a random subset of a large dataset)
+    # our addition: motion caches whose (training-split) windows supply the swapped-in initial
+    # states, none of them of the commanded label; empty: the adaptation data itself. Only their
+    # first frames are used (no labels, nothing of their motion is learnt): the few-shot set
+    # stays the labelled motion, and the states are the kind an avatar is in when a label comes
+    # (the base model's own data: walking, running, anything)
+    swap_data: list[str] = field(default_factory=list)
     max_minutes: float = 0.0  # stop early after this much wall time (0 = run all steps)
     # the saved adaptor is an exponential moving average of the trained weights (0 = the last
     # weights), as the base model's training does: at batch 16 and lr 3e-4 the last weights
@@ -180,8 +186,14 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     def labels_of(clips: torch.Tensor) -> torch.Tensor:
         return torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clips])
     t0 = time.time()  # the neighbour search's set-up counts against --max-minutes too
-    pool = _NeighbourPool(ds, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
-    pool_labels = labels_of(pool.clip) if pool is not None and cfg.task == "actions" else None
+    # where swapped-in initial states come from, and each of its windows' label index (-1: none of ours)
+    states = ds
+    if cfg.swap_initial > 0 and cfg.swap_data:
+        states = SegmentDataset([MotionCache.load(p) for p in resolve_caches(cfg.swap_data)],
+                                SegmentConfig(split=cfg.split, mirror=mirrored))
+    states_label = torch.tensor([label_index.get(lb.get(cfg.label_key), -1) for lb in states.clip_labels])
+    pool = _NeighbourPool(states, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
+    pool_labels = states_label[pool.clip] if pool is not None else None
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "adapt_config.json").write_text(json.dumps(asdict(cfg), indent=1))
@@ -203,20 +215,22 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         drop = torch.rand(cfg.batch, generator=gen) < cfg.control_dropout
         if cfg.swap_initial > 0:
             if pool is None:
-                other = torch.randint(len(ds.window_starts), (cfg.batch,), generator=gen)
+                other = torch.randint(len(states.window_starts), (cfg.batch,), generator=gen)
             swap = (torch.rand(cfg.batch, generator=gen) < cfg.swap_initial) & ~drop  # the null control keeps its state
             # actions: only a state of another class (a state of the commanded action is continued)
             if pool is None and cfg.task == "actions":
-                swap &= labels_of(ds.window_clip[other]) != y
+                swap &= states_label[states.window_clip[other]] != y
             rows = swap.nonzero()[:, 0]
             if len(rows):  # build only the swapped windows: this is the training loop's hot path
                 if pool is None:
-                    starts, mirror = ds.window_starts[other[rows]], None
+                    starts, mirror = states.window_starts[other[rows]], None
                 else:
                     allowed = pool_labels[None] != y[rows][:, None] if cfg.task == "actions" else None
-                    pick = pool.partners(x0n[rows], clip[rows], cfg.swap_neighbours, gen, allowed)
-                    starts, mirror = ds.window_starts[pool.index[pick]], pool.mirror[pick]
-                xo, _ = ds.windows(starts, gen, shapes=shapes[rows], mirror=mirror)
+                    # a window of the same clip is never a partner (clip numbers are the adaptation set's)
+                    own = clip[rows] if states is ds else torch.full((len(rows),), -1)
+                    pick = pool.partners(x0n[rows], own, cfg.swap_neighbours, gen, allowed)
+                    starts, mirror = states.window_starts[pool.index[pick]], pool.mirror[pick]
+                xo, _ = states.windows(starts, gen, shapes=shapes[rows], mirror=mirror)
                 x0n = x0n.clone()
                 x0n[rows] = motor.norm.encode(xo[:, 0])
         t = torch.randint(motor.diffusion.T, (cfg.batch,), generator=gen)
@@ -232,7 +246,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
     info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
-            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours, "mirror": mirrored,
+            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours, "swap_data": cfg.swap_data, "mirror": mirrored,
             "licence": motor.config.get("licence", "")}
     with torch.no_grad():
         for n, p in trainable.items():
