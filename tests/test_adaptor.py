@@ -133,8 +133,8 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert main(args + ["--swap-neighbours", "4", "--out", str(tmp_path / "nn")]) == 0
         meta = json.loads((tmp_path / "nn" / "adaptor" / "adaptor.json").read_text())
         assert meta["swap_neighbours"] == 4 and meta["mirror"] is False
-        # swapped-in states from another cache (only walks: a wave window starts from one, a walk
-        # window from none), by itself and with the neighbour search over that cache
+        # swapped-in states from another cache (it holds only walks, so wave windows can get its
+        # states and walk windows none), by itself and with the neighbour search over that cache
         walks = tmp_path / "walks"
         walks.mkdir()
         shutil.copy(FIXTURES / "walk_lafan1.bvh", walks / "dataset-9_walk_normal_100.bvh")
@@ -143,6 +143,7 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
             assert main(args + ["--swap-data", "walks", "--swap-neighbours", k, "--out", str(tmp_path / f"sd{k}")]) == 0
             assert json.loads((tmp_path / f"sd{k}" / "adaptor" / "adaptor.json").read_text())["swap_data"] == ["walks"]
         assert main(args + ["--swap-data", "no-such-cache"]) == 2
+        assert main(args[:-1] + ["0", "--swap-data", "walks"]) == 2  # nothing would be swapped in
         assert main(args + ["--mirror", "--out", str(tmp_path / "mirrored")]) == 0
         assert json.loads((tmp_path / "mirrored" / "adaptor" / "adaptor.json").read_text())["mirror"] is True
         assert main(args + ["--swap-neighbours", "-1"]) == 2

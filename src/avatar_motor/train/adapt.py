@@ -149,6 +149,10 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
     if cfg.swap_neighbours < 0:
         raise ValueError(f"--swap-neighbours is a count of windows (0 = any window), not {cfg.swap_neighbours}")
+    if cfg.swap_data:
+        if cfg.swap_initial == 0:
+            raise ValueError("--swap-data supplies the swapped-in initial states: use it with --swap-initial above 0")
+        resolve_caches(cfg.swap_data)  # a missing cache is named before anything loads
     if cfg.lr_schedule not in ("constant", "cosine"):
         raise ValueError(f"--lr-schedule must be 'constant' or 'cosine', not {cfg.lr_schedule!r}")
     torch.manual_seed(cfg.seed)
