@@ -187,15 +187,17 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     gen = torch.Generator().manual_seed(cfg.seed)
     label_index = {c: k for k, c in enumerate(classes)}
 
-    def labels_of(clips: torch.Tensor) -> torch.Tensor:
-        return torch.tensor([label_index[ds.clip_labels[int(k)][cfg.label_key]] for k in clips])
+    def clip_classes(d: SegmentDataset) -> torch.Tensor:
+        """Each clip's class index (-1: none of ours), looked up once, not per training step."""
+        return torch.tensor([label_index.get(lb.get(cfg.label_key), -1) for lb in d.clip_labels])
+    ds_label = clip_classes(ds)
     t0 = time.time()  # the neighbour search's set-up counts against --max-minutes too
-    # where swapped-in initial states come from, and each of its windows' label index (-1: none of ours)
-    states = ds
-    if cfg.swap_initial > 0 and cfg.swap_data:
+    # where swapped-in initial states come from, and the class of each of its clips
+    states, states_label = ds, ds_label
+    if cfg.swap_data:  # (validated above: only with --swap-initial above 0)
         states = SegmentDataset([MotionCache.load(p) for p in resolve_caches(cfg.swap_data)],
                                 SegmentConfig(split=cfg.split, mirror=mirrored))
-    states_label = torch.tensor([label_index.get(lb.get(cfg.label_key), -1) for lb in states.clip_labels])
+        states_label = clip_classes(states)
     pool = _NeighbourPool(states, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
     pool_labels = states_label[pool.clip] if pool is not None else None
     out = Path(cfg.out)
@@ -211,7 +213,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
                 group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * _progress(step, cfg, time.time() - t0)))
         x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
         if cfg.task == "actions":
-            y = labels_of(clip)
+            y = ds_label[clip]
         else:
             y = target_of(x)
         xn = motor.norm.encode(x)
