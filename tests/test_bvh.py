@@ -162,3 +162,18 @@ def test_corrupt_cache_gives_clear_error(tmp_path):
     p.write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="not a readable motion cache.*import"):
         MotionCache.load(p)
+
+
+def test_cache_of_an_older_importer_is_named_and_converted_anew(tmp_path):
+    src = tmp_path / "d"
+    src.mkdir()
+    (src / "walk_cmu.bvh").write_bytes((FIX / "walk_cmu.bvh").read_bytes())
+    path, _ = import_motion(src, progress=False, workers=1)
+    c = MotionCache.load(path)
+    c.meta["version"] -= 1  # as an earlier importer wrote it
+    c.save(path)
+    with pytest.raises(ValueError, match="older importer.*data import"):
+        MotionCache.load(path)
+    _, s = import_motion(src, progress=False, workers=1)
+    assert s["new"] == 1 and s["unchanged"] == 0
+    assert MotionCache.load(path).meta["version"] == c.meta["version"] + 1

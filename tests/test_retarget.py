@@ -144,6 +144,32 @@ def test_unit_detection_from_stature(unit, factor):
     assert np.allclose(r.root_pos, retarget(read_bvh(FIXTURES / "walk_lafan1.bvh")).root_pos, atol=1e-4)
 
 
+def test_toes_pointing_down_do_not_flip_a_right_handed_file():
+    # a sprinter's toes point nearly straight down, their world median slightly backward: the
+    # handedness is judged per frame from the knees and toes in the body's own frame
+    from avatar_motor.data.retarget import detect_axes, detect_mapping
+    b = read_bvh(FIXTURES / "walk_lafan1.bvh")
+    m = detect_mapping(b, None)
+    P, _ = b.global_transforms()
+    A = detect_axes(P, m)
+    assert np.linalg.det(A) > 0
+    for side in ("left", "right"):
+        ankle, toe = m.joints[f"{side}_ankle"][0], m.joints[f"{side}_foot"][0]
+        length = np.linalg.norm(P[:, toe] - P[:, ankle], axis=-1).mean()
+        P[:, toe] = P[:, ankle] - length * (0.98 * A[1] + 0.2 * A[2])  # down, a little behind the ankle
+    assert np.allclose(detect_axes(P, m), A)
+
+
+def test_bandai_dash_clips_import_right_handed(bandai):
+    # 4 of Bandai's 15 dash clips (and 2 run clips) were once imported as mirror images running backward
+    for style in ("active", "childish", "masculinity", "tired", "angry"):
+        r = retarget(read_bvh(bandai / "dataset-1" / "data" / f"dataset-1_dash_{style}_001.bvh"))
+        J = joints(r)
+        travel = J[-1, 0] - J[0, 0]
+        facing = torch.stack((torch.sin(facing_yaw(J)), torch.cos(facing_yaw(J))), -1).mean(0)
+        assert float(travel[[0, 2]] @ facing) > 1.0, f"dash {style}: does not run where it faces"
+
+
 def test_left_handed_file_is_detected_and_mirrored_back():
     from avatar_motor.body.rotations import euler_to_matrix, matrix_to_euler
     b = read_bvh(FIXTURES / "walk_lafan1.bvh")  # ZYX rotations, root XYZ position

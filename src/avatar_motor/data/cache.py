@@ -28,8 +28,12 @@ import numpy as np
 from ..io.bvh import BVHError, read_bvh
 from .retarget import resample, retarget
 
-CACHE_VERSION = 2  # 2: twist-canonical retargeting
+CACHE_VERSION = 3  # 2: twist-canonical retargeting; 3: handedness judged per frame (no mirrored sprints)
 _BANDAI = re.compile(r"dataset-(?P<part>\d+)_(?P<content>[a-z\-]+)_(?P<style>[a-z\-]+)_(?P<id>\d+)$")
+
+
+class StaleCacheError(ValueError):
+    """A cache written by an older importer: import its source again."""
 
 
 def default_cache_dir() -> Path:
@@ -82,11 +86,12 @@ class MotionCache:
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
-                if meta.get("version") != CACHE_VERSION:
-                    raise ValueError(f"cache version {meta.get('version')} != {CACHE_VERSION}")
-                return MotionCache(z["root_pos"], z["quats"], z["clip_start"], z["clip_len"], meta, path)
+                if meta.get("version") == CACHE_VERSION:
+                    return MotionCache(z["root_pos"], z["quats"], z["clip_start"], z["clip_len"], meta, path)
         except (OSError, ValueError, KeyError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: not a readable motion cache ({e}). Delete it and run 'avatar-motor data import' again") from None
+        raise StaleCacheError(f"{path}: made by an older importer (cache version {meta.get('version')}, this one writes "
+                              f"{CACHE_VERSION}). Run 'avatar-motor data import' on its source again: it converts every file anew")
 
     def save(self, path: str | Path) -> None:
         path = Path(path)
@@ -186,7 +191,12 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
             name = src.parent.name
     cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
     path = cache_dir / f"{name}.npz"
-    old = MotionCache.load(path) if path.exists() else None
+    old = None
+    if path.exists():
+        try:
+            old = MotionCache.load(path)
+        except StaleCacheError:  # an older importer's conversion: every file is converted anew
+            print(f"{path}: written by an older importer; converting every file again", flush=True)
     have = {c["key"]: (i, c) for i, c in enumerate(old.clips)} if old else {}
     t0 = time.time()
     kept, new_items, skipped, seen = [], [], [], set()
