@@ -196,9 +196,10 @@ def detect_axes(P: np.ndarray, m: Mapping) -> np.ndarray:
 
 def _handedness(P: np.ndarray, j: dict[str, int]) -> float:
     """> 0 for a right-handed file: in each frame's own body frame (forward = left x up), the knees
-    bend forward and the toes point forward; the mean of both, in leg lengths. Judged per frame,
-    not on world-axis medians: a sprinter's toes point nearly straight down, and the median
-    toe vector of Bandai's dash clips leaned backward in the world, which mirrored 6 of its 174 files."""
+    bend forward and the toes point forward; both summed, averaged over frames, in leg lengths.
+    Judged per frame, not on world-axis medians: a sprinter's toes point nearly straight down, and
+    their world median leaned backward in 13 of Bandai's 3,076 files (dash and run), which the
+    earlier toe-median test mirrored."""
     left = P[:, j["left_hip"]] - P[:, j["right_hip"]]
     up = P[:, j["head"]] - 0.5 * (P[:, j["left_ankle"]] + P[:, j["right_ankle"]])
     fwd = np.cross(left, up)
