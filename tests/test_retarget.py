@@ -166,7 +166,8 @@ def test_bandai_dash_clips_import_right_handed(bandai):
         r = retarget(read_bvh(bandai / "dataset-1" / "data" / f"dataset-1_dash_{style}_001.bvh"))
         J = joints(r)
         travel = J[-1, 0] - J[0, 0]
-        facing = torch.stack((torch.sin(facing_yaw(J)), torch.cos(facing_yaw(J))), -1).mean(0)
+        yaw = facing_yaw(J)
+        facing = torch.stack((torch.sin(yaw), torch.cos(yaw)), -1).mean(0)
         assert float(travel[[0, 2]] @ facing) > 1.0, f"dash {style}: does not run where it faces"
 
 

@@ -185,23 +185,23 @@ def detect_axes(P: np.ndarray, m: Mapping) -> np.ndarray:
     positions P (F, J, 3): up from feet to head, left from the hips, and the handedness from the
     body itself (so a left-handed file is detected and mirrored into our right-handed world)."""
     j = {k: v[0] for k, v in m.joints.items()}
-    up = _axis_snap(np.median(P[:, j["head"]] - 0.5 * (P[:, j["left_ankle"]] + P[:, j["right_ankle"]]), 0))
-    left = np.median(P[:, j["left_hip"]] - P[:, j["right_hip"]], 0)
+    up_f = P[:, j["head"]] - 0.5 * (P[:, j["left_ankle"]] + P[:, j["right_ankle"]])  # per frame
+    left_f = P[:, j["left_hip"]] - P[:, j["right_hip"]]
+    up = _axis_snap(np.median(up_f, 0))
+    left = np.median(left_f, 0)
     left = _axis_snap(left - up * (left @ up))
     fwd = np.cross(left, up)
-    if _handedness(P, j) < 0:  # left-handed file: mirror so the body faces where its knees and toes point
+    if _handedness(P, j, left_f, up_f) < 0:  # left-handed file: mirror so the body faces where its knees and toes point
         fwd = -fwd
     return np.stack((left, up, fwd))
 
 
-def _handedness(P: np.ndarray, j: dict[str, int]) -> float:
-    """> 0 for a right-handed file: in each frame's own body frame (forward = left x up), the knees
-    bend forward and the toes point forward; both summed, averaged over frames, in leg lengths.
-    Judged per frame, not on world-axis medians: a sprinter's toes point nearly straight down, and
-    their world median leaned backward in 13 of Bandai's 3,076 files (dash and run), which the
-    earlier toe-median test mirrored."""
-    left = P[:, j["left_hip"]] - P[:, j["right_hip"]]
-    up = P[:, j["head"]] - 0.5 * (P[:, j["left_ankle"]] + P[:, j["right_ankle"]])
+def _handedness(P: np.ndarray, j: dict[str, int], left: np.ndarray, up: np.ndarray) -> float:
+    """> 0 for a right-handed file: in each frame's own body frame (forward = left x up, from the
+    per-frame hip and up vectors), the knees bend forward and the toes point forward; both summed,
+    averaged over frames, in leg lengths. Judged per frame, not on world-axis medians: a
+    sprinter's toes point nearly straight down, and their world median leaned backward in 13 of
+    Bandai's 3,076 files (dash and run), which the earlier toe-median test mirrored."""
     fwd = np.cross(left, up)
     fwd /= np.maximum(np.linalg.norm(fwd, axis=-1, keepdims=True), 1e-9)
     cue = 0.0
