@@ -44,7 +44,9 @@ class AdaptConfig:
     # window (for actions: of another class; same body shape); 0 is PRIMAL's recipe. In few-shot
     # clips the initial state already tells the action, so without this the label is nearly
     # redundant and the adaptor ignores it from any other state (measured, 5 Bandai classes, 30 min:
-    # R-precision 0.227 with 0, 0.920 with 0.5, 45 held-out states x 5 labels)
+    # R-precision 0.227 with 0, 0.920 with 0.5, 45 held-out states x 5 labels). On cache version 3,
+    # one core: 0.867 at 0.5, 0.916 / 0.907 (two seeds) at 0.8, 0.960 at 1.0 but skating (ASR 0.138
+    # vs 0.06: no labelled window then continues its own state); the README's few-shot recipe uses 0.8
     swap_initial: float = 0.5
     # our addition: 0 swaps in the initial state of any window; K > 0 the state of one of the K
     # windows (of other clips) whose initial states are nearest to the window's own (canonical joint
