@@ -133,6 +133,9 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert main(args + ["--swap-neighbours", "4", "--out", str(tmp_path / "nn")]) == 0
         meta = json.loads((tmp_path / "nn" / "adaptor" / "adaptor.json").read_text())
         assert meta["swap_neighbours"] == 4 and meta["mirror"] is False
+        assert main(args + ["--swap-neighbours", "4", "--swap-match", "feet", "--out", str(tmp_path / "feet")]) == 0
+        assert json.loads((tmp_path / "feet" / "adaptor" / "adaptor.json").read_text())["swap_match"] == "feet"
+        assert main(args + ["--swap-match", "feet"]) == 2  # nothing to match without the neighbour search
         # swapped-in states from another cache (it holds only walks, so wave windows can get its
         # states and walk windows none), by itself and with the neighbour search over that cache
         walks = tmp_path / "walks"
@@ -326,6 +329,18 @@ def test_neighbour_swap_partners_are_near_states_of_other_clips():
     odd = (pool.clip % 2 == 1)[None]  # e.g. "of another class"
     picks = {int(pool.partners(torch.tensor([[0.0]]), torch.tensor([0]), 2, g, odd)) for _ in range(40)}
     assert picks == {1, 3}
+
+
+def test_feet_matching_compares_only_the_ankles_and_feet():
+    from avatar_motor.data.motion_state import SLICES, STATE_DIM
+    from avatar_motor.train.adapt import _match_features
+    feet, state = _match_features("feet"), _match_features("state")
+    assert len(feet) == 2 * 4 * 3 and len(state) == 2 * 22 * 3 and set(feet.tolist()) <= set(state.tolist())
+    x = torch.zeros(STATE_DIM)
+    x[SLICES["joints"]] = torch.arange(66.0)  # joint j's x, y, z hold 3j, 3j + 1, 3j + 2
+    # the left/right ankle (7, 8) and foot (10, 11) positions, then their velocities (zero here)
+    assert x[feet[:12]].tolist() == [float(v) for j in (7, 8, 10, 11) for v in range(3 * j, 3 * j + 3)]
+    assert (feet[12:] >= SLICES["velocities"].start).all()
 
 
 def _yaw_locks_seen(monkeypatch) -> list:

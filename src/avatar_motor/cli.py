@@ -365,6 +365,7 @@ def _adapt(a) -> int:
         cfg.ema_decay = a.ema_decay
     cfg.lr_schedule = a.lr_schedule
     cfg.swap_neighbours = a.swap_neighbours
+    cfg.swap_match = a.swap_match
     cfg.swap_data = a.swap_data or []
     cfg.mirror = a.mirror
     path = adapt(cfg)
@@ -502,6 +503,8 @@ def build_parser() -> argparse.ArgumentParser:
     ad.add_argument("--swap-neighbours", type=int, default=0, metavar="K",
                     help="swap in the initial state of one of the K windows whose initial states are nearest to the window's own "
                          "(0 = any window): the swapped state nearly continues into the motion")
+    ad.add_argument("--swap-match", choices=("state", "feet"), default="state",
+                    help="what --swap-neighbours compares: the whole state, or only the ankles' and feet's positions and velocities")
     ad.add_argument("--swap-initial", type=float,
                     help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
                          "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from ..body.skeleton import SHAPE_DIM
+from ..body.skeleton import JOINT_INDEX, SHAPE_DIM
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..data.motion_state import SLICES
@@ -56,6 +56,11 @@ class AdaptConfig:
     # 128 0.035 / 0.069, 512 0.031 / 0.068. Its rollouts' raw seams are not smoother (acceleration
     # across a seam without inertialization 81 m/s^2 vs 60 for K = 0): why it helps is not measured
     swap_neighbours: int = 0
+    # our addition: what "nearest" compares for --swap-neighbours: "state" (all joint positions and
+    # velocities) or "feet" (ankle and foot positions and velocities only): the swapped-in state then
+    # stands where the window's own feet are, so learning to turn it into the action moves no
+    # planted foot, while its upper body can be anything
+    swap_match: str = "state"
     swap_pool: int = 30000  # windows searched for neighbours (a random subset of a large dataset)
     # our addition: motion caches whose (training-split) windows supply the swapped-in initial
     # states, none of them of the commanded label; empty: the adaptation data itself. Only their
@@ -93,13 +98,19 @@ def _progress(step: int, cfg: AdaptConfig, seconds: float) -> float:
     return min(1.0, done)
 
 
+def _match_features(match: str) -> torch.Tensor:
+    """Indices into a motion state of what --swap-match compares: all joints' positions and
+    velocities, or only those of the ankles and feet."""
+    joints = range(22) if match == "state" else [JOINT_INDEX[j] for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
+    return torch.tensor([s.start + 3 * j + k for s in (SLICES["joints"], SLICES["velocities"]) for j in joints for k in range(3)])
+
+
 class _NeighbourPool:
     """Initial-state features of a random subset of the dataset's windows (each with its mirroring
     fixed), for finding a window whose initial state resembles a given one."""
-    FEATURES = torch.cat([torch.arange(SLICES["joints"].start, SLICES["joints"].stop),
-                          torch.arange(SLICES["velocities"].start, SLICES["velocities"].stop)])
 
-    def __init__(self, ds: SegmentDataset, norm, n: int, gen: torch.Generator):
+    def __init__(self, ds: SegmentDataset, norm, n: int, gen: torch.Generator, match: str = "state"):
+        self.feature_index = _match_features(match)
         self.index = torch.randperm(len(ds.window_starts), generator=gen)[:n]
         self.mirror = torch.rand(len(self.index), generator=gen) < 0.5 if ds.cfg.mirror else torch.zeros(len(self.index), dtype=torch.bool)
         feats = []
@@ -110,7 +121,7 @@ class _NeighbourPool:
         self.clip = ds.window_clip[self.index]
 
     def features(self, x0n: torch.Tensor) -> torch.Tensor:
-        return x0n[:, self.FEATURES]
+        return x0n[:, self.feature_index]
 
     def partners(self, x0n: torch.Tensor, clips: torch.Tensor, k: int, gen: torch.Generator,
                  allowed: torch.Tensor | None = None) -> torch.Tensor:
@@ -152,6 +163,10 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
     if cfg.swap_neighbours < 0:
         raise ValueError(f"--swap-neighbours is a count of windows (0 = any window), not {cfg.swap_neighbours}")
+    if cfg.swap_match not in ("state", "feet"):
+        raise ValueError(f"--swap-match must be 'state' or 'feet', not {cfg.swap_match!r}")
+    if cfg.swap_match != "state" and cfg.swap_neighbours == 0:
+        raise ValueError("--swap-match chooses what --swap-neighbours compares: give --swap-neighbours K too")
     if cfg.swap_data:
         if cfg.swap_initial == 0:
             raise ValueError("--swap-data supplies the swapped-in initial states: use it with --swap-initial above 0")
@@ -201,7 +216,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         states = SegmentDataset([MotionCache.load(p) for p in resolve_caches(cfg.swap_data)],
                                 SegmentConfig(split=cfg.split, mirror=mirrored))
         states_label = clip_classes(states)
-    pool = _NeighbourPool(states, motor.norm, cfg.swap_pool, gen) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
+    pool = _NeighbourPool(states, motor.norm, cfg.swap_pool, gen, cfg.swap_match) if cfg.swap_initial > 0 and cfg.swap_neighbours > 0 else None
     pool_labels = states_label[pool.clip] if pool is not None else None
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -255,7 +270,7 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
     info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
-            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours, "swap_data": cfg.swap_data, "mirror": mirrored,
+            "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours, "swap_match": cfg.swap_match, "swap_data": cfg.swap_data, "mirror": mirrored,
             "licence": motor.config.get("licence", "")}
     with torch.no_grad():
         for n, p in trainable.items():
