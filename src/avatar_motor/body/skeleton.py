@@ -30,6 +30,7 @@ JOINT_NAMES = [
 NUM_JOINTS = 22
 PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19]
 JOINT_INDEX = {n: i for i, n in enumerate(JOINT_NAMES)}
+ANKLES_AND_FEET = [JOINT_INDEX[n] for n in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
 SHAPE_NAMES = ["stature", "leg_length", "torso_length", "arm_length", "shoulder_width", "hip_width"]
 SHAPE_DIM = len(SHAPE_NAMES)
 # left/right partner of every joint (for mirroring)

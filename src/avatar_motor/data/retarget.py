@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ..body import rotations as rot
-from ..body.skeleton import (FOOT_CLEARANCE, JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics,
+from ..body.skeleton import (ANKLES_AND_FEET, FOOT_CLEARANCE, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics,
                              rest_offsets)
 from ..io.bvh import BVH, BVHError
 
@@ -312,7 +312,7 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
     root = P_w[:, m.joints["pelvis"][0]] * ratio
     # feet on the ground: the 10th percentile of the per-frame lowest foot joint sits at FOOT_CLEARANCE
     J, _ = forward_kinematics(root, glob[:, 0], local, can_off)
-    feet = J[:, [JOINT_INDEX[n] for n in ("left_ankle", "right_ankle", "left_foot", "right_foot")], 1].min(1).values
+    feet = J[:, ANKLES_AND_FEET, 1].min(1).values
     lift = FOOT_CLEARANCE - float(torch.quantile(feet, 0.1)) if ground == "auto" else 0.0
     root[:, 1] += lift
     quats = torch.cat((rot.matrix_to_quat(glob[:, :1]), rot.matrix_to_quat(local)), 1)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from ..body.skeleton import JOINT_INDEX, SHAPE_DIM
+from ..body.skeleton import ANKLES_AND_FEET, NUM_JOINTS, SHAPE_DIM
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..data.motion_state import SLICES
@@ -103,7 +103,7 @@ def _progress(step: int, cfg: AdaptConfig, seconds: float) -> float:
 def _match_features(match: str) -> torch.Tensor:
     """Indices into a motion state of what --swap-match compares: all joints' positions and
     velocities, or only those of the ankles and feet."""
-    joints = range(22) if match == "state" else [JOINT_INDEX[j] for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
+    joints = range(NUM_JOINTS) if match == "state" else ANKLES_AND_FEET
     return torch.tensor([s.start + 3 * j + k for s in (SLICES["joints"], SLICES["velocities"]) for j in joints for k in range(3)])
 
 
