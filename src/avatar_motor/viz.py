@@ -84,7 +84,10 @@ def label_grid(clips: dict[str, list[np.ndarray]], path: str | Path, poses: int 
                 xy = np.stack((P[:, 2] - J[0, 0, 2] + 0.6 * k, P[:, 1]), 1)
                 _draw(ax, np.concatenate((xy, P[:, :1]), 1), alpha=0.35 + 0.65 * k / max(1, poses - 1))
             ax.axhline(0, color="0.6", lw=0.8)
-            ax.set_ylim(-0.1, 2.0)
+            # the floor-to-head band in every cell without fixing a limit: a fixed one conflicts
+            # with the equal aspect (matplotlib then warns once per cell and ignores it)
+            ax.update_datalim([(xy[0, 0], -0.1), (xy[0, 0], 2.0)])
+            ax.autoscale_view()
             ax.set_aspect("equal", adjustable="datalim")
             if c == 0:
                 ax.set_ylabel(label, fontsize=9)
