@@ -331,6 +331,9 @@ def test_smoothing_width_can_differ_per_body():
     both = smooth_segment(x0, seg, torch.tensor([0.0, 2.0], dtype=torch.float64))
     assert torch.allclose(joints_of(both[:1]), joints_of(seg[:1]), atol=1e-12)  # sigma 0: untouched
     assert torch.allclose(both[1:], smooth_segment(x0[1:], seg[1:], 2.0), atol=1e-12)
+    # a body beside a wider-smoothed one is smoothed as it is alone (a crowd equals solo avatars)
+    mixed = smooth_segment(x0, seg, torch.tensor([1.25, 3.0], dtype=torch.float64))
+    assert torch.allclose(mixed[:1], smooth_segment(x0[:1], seg[:1], 1.25), atol=1e-12)
 
 
 @pytest.mark.parametrize("with_body, expected", [(0.0, (-1.0, 0.0)), (1.0, (0.0, 1.0)), (0.5, (-0.7071, 0.7071))])
