@@ -107,12 +107,13 @@ def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Ten
     sig = torch.as_tensor(sigma, dtype=seg.dtype).expand(B)
     if float(sig.max()) <= 0:
         return seg
-    r = max(1, math.ceil(2.5 * float(sig.max())))
-    t = torch.arange(-r, r + 1, dtype=seg.dtype)
-    k = torch.exp(-0.5 * (t / sig[:, None].clamp_min(1e-3)) ** 2)  # (B, 2r + 1); sigma 0 -> a delta
     # each body's kernel ends at its own 2.5 sigma, so a body in a crowd is smoothed as it is alone
     # (a still body's wider kernel widened everyone's: the padding's far frames weighed in)
-    k = k * (t.abs() <= torch.ceil(2.5 * sig[:, None]).clamp_min(1))
+    radius = torch.ceil(2.5 * sig).clamp_min(1)  # (B,)
+    r = int(radius.max())
+    t = torch.arange(-r, r + 1, dtype=seg.dtype)
+    k = torch.exp(-0.5 * (t / sig[:, None].clamp_min(1e-3)) ** 2)  # (B, 2r + 1); sigma 0 -> a delta
+    k = k * (t.abs() <= radius[:, None])
     k = k / k.sum(1, keepdim=True)
     pad_front = torch.cat((_history(x0, r - 1), x0[:, None]), 1) if r > 1 else x0[:, None]
     # the end point-reflected (2 x_N - x_{N-k}): continues the segment's trend, where a mirror
