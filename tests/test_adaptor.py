@@ -256,7 +256,7 @@ def test_runtime_labels_and_targets(tmp_path):
 def test_adaptation_evals_run_on_tiny_models(tmp_path, caplog):
     from avatar_motor.data.cache import MotionCache, import_motion
     from avatar_motor.data.dataset import SegmentConfig, SegmentDataset
-    from avatar_motor.eval.adaptation import eval_actions, eval_reach, train_encoder
+    from avatar_motor.eval.adaptation import eval_actions, eval_reach, r_precision, train_evaluators
     from .conftest_models import tiny_motor
     from .fixture_tools import FIXTURES
     import shutil
@@ -267,11 +267,30 @@ def test_adaptation_evals_run_on_tiny_models(tmp_path, caplog):
         shutil.copy(FIXTURES / f"{name}.bvh", src / f"dataset-9_{content}_normal_00{k}.bvh")
     path, _ = import_motion(src, name="labelled", progress=False, workers=1)
     ds = SegmentDataset([MotionCache.load(path)], SegmentConfig(frames=30, split="all"))
-    enc = train_encoder(ds, "content", ["walk", "wave"], seconds=1.0, steps=5)
+    encs = train_evaluators(ds, "content", ["walk", "wave"], seconds=1.0, steps=5, seeds=[0, 1])
     init, shapes = ds.sample(2, torch.Generator().manual_seed(0))
     ad = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["walk", "wave"])).eval()
-    rows, rollouts = eval_actions(motor, {"base": None, "ours": ad}, enc, init[:, 0], shapes, ["walk", "wave"], seconds=1.0)
-    assert [r["method"] for r in rows] == ["base", "ours"] and 0 <= rows[1]["R_precision"] <= 1
+    rows, rollouts = eval_actions(motor, {"base": None, "ours": ad}, encs, init[:, 0], shapes, ["walk", "wave"], seconds=1.0)
+    assert [r["method"] for r in rows] == ["base", "ours"]
+    r = rows[1]
+    assert 0 <= r["R_min"] <= r["R_precision"] <= r["R_max"] <= 1
+    # the averaged confusion holds each evaluator's reading of every rollout once: 2 per label
+    assert [sum(row) for row in r["confusion"]] == pytest.approx([2.0, 2.0])
+    X = torch.cat([rollouts["ours"]["walk"], rollouts["ours"]["wave"]])
+    y = torch.tensor([0, 0, 1, 1])
+    by_each = [r_precision(*e, X, y) for e in encs]
+    assert r["R_precision"] == pytest.approx(sum(by_each) / 2) and r["R_max"] == max(by_each)
+    # stored evaluators are read back as they were; a damaged one is trained again, not trusted
+    said = []
+    first = train_evaluators(ds, "content", ["walk", "wave"], 1.0, 5, [3], said.append, cache=tmp_path / "ev")
+    again = train_evaluators(ds, "content", ["walk", "wave"], 1.0, 5, [3], said.append, cache=tmp_path / "ev")
+    assert "training" in said[0] and "ev" in said[-1] and torch.equal(
+        first[0][0](X[:, :30, :66].float()), again[0][0](X[:, :30, :66].float()))
+    stored = next((tmp_path / "ev").glob("*.pt"))
+    stored.write_bytes(b"not a checkpoint")
+    train_evaluators(ds, "content", ["walk", "wave"], 1.0, 5, [3], said.append, cache=tmp_path / "ev")
+    assert "unreadable" in said[-2] and "training" in said[-1]
+    assert len(list((tmp_path / "ev").iterdir())) == 1 and stored.stat().st_size > 1000
     assert rollouts["ours"]["wave"].shape == (2, 31, 267)
     reach = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
     rows, paths = eval_reach(motor, {"base": None, "ours": reach}, init[:, 0], shapes, seconds=0.5)

@@ -387,7 +387,8 @@ def _named_adaptors(specs: list[str], motor):
 
 
 def _eval_adaptation(a) -> int:
-    from .eval.adaptation import TARGETS, eval_actions, eval_reach, format_confusion, format_rows, r_precision, train_encoder
+    from .eval.adaptation import TARGETS, eval_actions, eval_reach, format_confusion, format_rows, r_precisions, train_evaluators
+    from .data.cache import default_cache_dir
     from .eval.control import initial_states
     from .model.checkpoint import load_checkpoint
     from .viz import label_grid, target_paths
@@ -424,21 +425,26 @@ def _eval_adaptation(a) -> int:
     def labelled(keep):
         return SegmentDataset(caches, SegmentConfig(frames=int(seconds * 30), split="all", mirror=False),
                               clip_filter=lambda c: c["labels"].get(key) in classes and keep(c["key"]))
-    enc = train_encoder(labelled(lambda k: k not in check), key, classes, seconds, steps=a.encoder_steps, seed=a.seed,
-                        progress=lambda m: print(m, flush=True))
+    if a.evaluators < 1:
+        raise ValueError(f"--evaluators is how many evaluators read the rollouts: 1 or more, not {a.evaluators}")
+    encs = train_evaluators(labelled(lambda k: k not in check), key, classes, seconds, a.encoder_steps,
+                            [a.seed + k for k in range(a.evaluators)], progress=lambda m: print(m, flush=True),
+                            cache=default_cache_dir().parent / "evaluators")
     try:
         if not check:
             raise ValueError("fewer than 4 clips per label, none left to check it on")
         held = labelled(lambda k: k in check)
         X, _, clip = held.sample_indexed(min(512, 8 * len(held.clip_labels)), torch.Generator().manual_seed(a.seed))
         y = torch.tensor([classes.index(held.clip_labels[int(k)][key]) for k in clip])
-        print(f"evaluator on real clips it did not train on ({len(check)}): R-precision "
-              f"{r_precision(*enc, X, y, canonical=True):.3f}", flush=True)
+        real = r_precisions(encs, X, y, canonical=True)
+        print(f"evaluators ({len(encs)}) on real clips they did not train on ({len(check)}): R-precision "
+              f"{real['R_precision']:.3f} (min {real['R_min']:.3f}, max {real['R_max']:.3f})", flush=True)
     except ValueError as e:
         print(f"no real reference for the evaluator: {e}")
-    rows, rollouts = eval_actions(motor, methods, enc, init, shapes, classes, seconds, a.seed, cfg, a.adaptor_scale)
+    rows, rollouts = eval_actions(motor, methods, encs, init, shapes, classes, seconds, a.seed, cfg, a.adaptor_scale)
     print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {seconds:g} s, "
-                      f"adaptor scale {a.adaptor_scale:g}", rows, ["R_precision", "ASR", "ANCR"]))
+                      f"adaptor scale {a.adaptor_scale:g}, R-precision by {len(encs)} evaluator(s)",
+                      rows, ["R_precision", "R_min", "R_max", "ASR", "ANCR"]))
     print(format_confusion(rows, classes))
     if a.png:
         from .eval.adaptation import canonical_joints
@@ -581,6 +587,9 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--data", nargs="*", help="motion caches the adaptors were trained on (default: dataset-1 dataset-2)")
         e.add_argument("--label-key", default="content")
         e.add_argument("--encoder-steps", type=int, default=600)
+        e.add_argument("--evaluators", type=int, default=1,
+                       help="actions: how many evaluators (seeds --seed, --seed + 1, ...) read the rollouts; "
+                            "R-precision is their mean, with min and max")
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
         e.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
                        help="adaptor strength: 0 = base model, 1 = as trained, above 1 the classifier-free guidance weight")

@@ -10,7 +10,11 @@
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -86,6 +90,49 @@ def train_encoder(ds: SegmentDataset, label_key: str, classes: list[str], second
     return menc.eval(), lenc.eval()
 
 
+def _evaluator_key(ds: SegmentDataset, label_key: str, classes: list[str], seconds: float, steps: int, seed: int) -> str:
+    """What an evaluator is trained from: the clips (names, lengths, a checksum of their motion),
+    labels, window length, steps and seed."""
+    what = {"format": 1, "label_key": label_key, "classes": classes, "seconds": seconds, "steps": steps, "seed": seed,
+            "clips": [[n, int(k)] for n, k in zip(ds.clip_names, ds.clip_len)],
+            "motion": round(float(ds.root_pos.double().abs().sum()), 3)}
+    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def train_evaluators(ds: SegmentDataset, label_key: str, classes: list[str], seconds: float, steps: int,
+                     seeds: list[int], progress=None, cache: Path | None = None) -> list[tuple[MotionEncoder, LabelEncoder]]:
+    """One evaluator per seed. A single one, overfit to a few clips, reads borderline generated
+    motion by its own quirks (R-precision moved by 0.013 with the thread count it trained on), so
+    `eval actions --evaluators N` reports the mean and range over N of them. With `cache` (a
+    folder) each evaluator is trained once and read back after: methods evaluated on different
+    days or thread counts are then read by the same evaluators."""
+    say = progress or (lambda m: None)
+    out = []
+    for s in seeds:
+        path = cache / f"{_evaluator_key(ds, label_key, classes, seconds, steps, s)}.pt" if cache else None
+        if path is not None and path.exists():
+            try:
+                saved = torch.load(path, weights_only=True)
+                menc, lenc = MotionEncoder(saved["frames"]), LabelEncoder(len(classes))
+                menc.load_state_dict(saved["motion"])
+                lenc.load_state_dict(saved["label"])
+                out.append((menc.eval(), lenc.eval()))
+                say(f"evaluator seed {s}: {path}")
+                continue
+            except Exception as e:  # a damaged file is replaced, never trusted
+                say(f"evaluator seed {s}: {path} is unreadable ({type(e).__name__}: {e}); training it again")
+        say(f"evaluator seed {s}: training")
+        menc, lenc = train_encoder(ds, label_key, classes, seconds, steps, s, progress)
+        out.append((menc, lenc))
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.name + f".tmp{os.getpid()}")  # written whole, then renamed
+            torch.save({"frames": menc.frames, "motion": menc.state_dict(), "label": lenc.state_dict(),
+                        "threads": torch.get_num_threads()}, tmp)
+            os.replace(tmp, path)
+    return out
+
+
 @torch.no_grad()
 def predict_labels(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, canonical: bool = False) -> torch.Tensor:
     """The evaluator's label for motions X: world states (B, T, 267), or canonical windows if `canonical`."""
@@ -100,6 +147,18 @@ def r_precision(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, y: tor
     return float((predict_labels(menc, lenc, X, canonical) == y).float().mean())
 
 
+def r_precisions(encoders: list, X: torch.Tensor, y: torch.Tensor, canonical: bool = False) -> dict:
+    """R-precision by each evaluator: their mean, min and max, and the confusion matrix averaged
+    over them (commanded rows, recognised columns)."""
+    n = encoders[0][1].embed.num_embeddings
+    rs, conf = [], torch.zeros(n, n)
+    for menc, lenc in encoders:
+        pred = predict_labels(menc, lenc, X, canonical)
+        rs.append(float((pred == y).float().mean()))
+        conf.index_put_((y, pred), torch.ones(len(y)), accumulate=True)
+    return {"R_precision": sum(rs) / len(rs), "R_min": min(rs), "R_max": max(rs), "confusion": (conf / len(encoders)).tolist()}
+
+
 def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int, cfg: RuntimeConfig) -> torch.Tensor:
     """A rollout whose avatar k gets setup(crowd, avatar id, k) before the first segment."""
     def controls(crowd, seg):
@@ -109,12 +168,11 @@ def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int,
     return rollout(motor, init, shapes, frames, cfg, seed, controls, adaptor)
 
 
-def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: list[str], seconds: float = 3.0,
+def eval_actions(motor: Motor, adaptors: dict, encoders: list, init, shapes, classes: list[str], seconds: float = 3.0,
                  seed: int = 0, cfg: RuntimeConfig | None = None, scale: float = 1.0) -> tuple[list[dict], dict]:
-    """Rows of Table A3 (a method named "base" with adaptor None is the unadapted model) and the
-    rollouts {method: {label: (n, T, 267)}}."""
+    """Rows of Table A3 (a method named "base" with adaptor None is the unadapted model), read by
+    each of `encoders` (see r_precisions), and the rollouts {method: {label: (n, T, 267)}}."""
     cfg = cfg or RuntimeConfig()
-    menc, lenc = encoder
     rows, rollouts = [], {}
     for name, ad in adaptors.items():
         Xs, ys, per_label = [], [], {}
@@ -126,10 +184,7 @@ def eval_actions(motor: Motor, adaptors: dict, encoder, init, shapes, classes: l
             per_label[label] = X
         X, y = torch.cat(Xs), torch.cat(ys)
         rollouts[name] = per_label
-        pred = predict_labels(menc, lenc, X)
-        rows.append({"method": name, "R_precision": float((pred == y).float().mean()), "ASR": M.asr(joints_of(X)),
-                     "ANCR": M.ancr(joints_of(X)),
-                     "confusion": [[int(((y == c) & (pred == p)).sum()) for p in range(len(classes))] for c in range(len(classes))]})
+        rows.append({"method": name, **r_precisions(encoders, X, y), "ASR": M.asr(joints_of(X)), "ANCR": M.ancr(joints_of(X))})
     return rows, rollouts
 
 
@@ -162,14 +217,17 @@ def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0,
 
 
 def format_confusion(rows: list[dict], classes: list[str]) -> str:
-    """Per method: how many rollouts of each commanded label (row) the evaluator read as each label."""
+    """Per method: how many rollouts of each commanded label (row) the evaluators read as each label
+    (on average over them)."""
     out = []
     for r in rows:
         if r["method"] == "base":
             continue  # the base ignores labels: its rows are all alike
         out.append(f"{r['method']}: commanded (rows) vs recognised (columns)")
         out.append(f"{'':12s} " + " ".join(f"{c[:9]:>9s}" for c in classes))
-        out += [f"{c[:12]:12s} " + " ".join(f"{v:9d}" for v in row) for c, row in zip(classes, r["confusion"])]
+        whole = all(float(v).is_integer() for row in r["confusion"] for v in row)  # one evaluator: counts
+        out += [f"{c[:12]:12s} " + " ".join(f"{v:9.0f}" if whole else f"{v:9.1f}" for v in row)
+                for c, row in zip(classes, r["confusion"])]
     return "\n".join(out)
 
 
