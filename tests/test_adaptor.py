@@ -326,6 +326,7 @@ def test_scale_above_one_is_classifier_free_guidance(kind, control):
     # Eq. (3): G(null) + gamma (G(y) - G(null)), the unconditional model being the adaptor with the
     # null control; at 1 both readings are the trained adaptor, so the scale is continuous there
     m = AdaptedDenoiser(base_net(), AdaptorConfig(kind=kind, control=control, labels=["a", "b"])).eval()
+    m.guidance = "null"  # PRIMAL's (the target adaptor's only)
     with torch.no_grad():
         for p in m.parameters():
             p.add_(0.01)
@@ -405,3 +406,29 @@ def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch)
     crowd.set_label(labelled, "bow", 0.0)
     crowd.step_segment()
     assert seen[-1] == [False, False]
+
+
+@pytest.mark.parametrize("kind", ["controlnet", "finetune"])
+def test_guidance_against_the_other_labels(kind):
+    # ours: G(y) + (gamma - 1) (G(y) - mean of G(y') over the other labels y'), a batched pass
+    m = AdaptedDenoiser(base_net(), AdaptorConfig(kind=kind, labels=["a", "b", "c"])).eval()
+    assert m.guidance == "others"  # the default for label adaptors
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.01)
+    t, x, x0 = inputs()
+    y = torch.tensor([0, 2, 1])
+    with torch.no_grad():
+        by_label = [m(t, x, x0, torch.full((3,), k), scale=1.0) for k in range(3)]
+        cond = m(t, x, x0, y, scale=1.0)
+        others = torch.stack([(sum(by_label) - by_label[int(k)])[i] / 2 for i, k in enumerate(y)])
+        for gamma in (1.5, 3.0):
+            assert torch.allclose(m(t, x, x0, y, scale=gamma), cond + (gamma - 1) * (cond - others), atol=1e-5)
+        # one label has no others: guidance falls back to the null control
+        one = AdaptedDenoiser(base_net(), AdaptorConfig(kind=kind, labels=["a"])).eval()
+        for p in one.parameters():
+            p.add_(0.01)
+        y1 = torch.zeros(3, dtype=torch.long)
+        null = one(t, x, x0, y1, scale=1.0, drop=torch.ones(3, dtype=torch.bool))
+        c1 = one(t, x, x0, y1, scale=1.0)
+        assert torch.allclose(one(t, x, x0, y1, scale=2.0), c1 + (c1 - null), atol=1e-5)

@@ -199,7 +199,9 @@ def _load_adaptor(a, motor):
     if not getattr(a, "adaptor", None):
         return None
     from .model.adaptor import load_adaptor
-    return load_adaptor(a.adaptor, motor.net, motor.name)
+    model = load_adaptor(a.adaptor, motor.net, motor.name)
+    model.guidance = a.guidance
+    return model
 
 
 def _parse_xz(text: str):
@@ -373,7 +375,7 @@ def _adapt(a) -> int:
     return 0
 
 
-def _named_adaptors(specs: list[str], motor):
+def _named_adaptors(specs: list[str], motor, guidance: str):
     """NAME=DIR items -> {name: AdaptedDenoiser}; the name 'base' (no dir) is the base model."""
     from .model.adaptor import load_adaptor
 
@@ -383,6 +385,7 @@ def _named_adaptors(specs: list[str], motor):
         if not path:
             raise ValueError(f"--adaptors {spec!r}: write NAME=FOLDER, e.g. ours=runs/adapt/adaptor")
         out[name] = load_adaptor(path, motor.net, motor.name)
+        out[name].guidance = guidance
     return out
 
 
@@ -395,7 +398,7 @@ def _eval_adaptation(a) -> int:
     import torch
 
     motor = load_checkpoint(a.model)
-    ads = _named_adaptors(a.adaptors, motor)
+    ads = _named_adaptors(a.adaptors, motor, a.guidance)
     methods = {"base": None, **ads}  # the unadapted model as the reference row
     caches = _caches(a.data)
     init, shapes, _ = initial_states(caches, a.n, a.seed)
@@ -443,7 +446,9 @@ def _eval_adaptation(a) -> int:
         print(f"no real reference for the evaluator: {e}")
     rows, rollouts = eval_actions(motor, methods, encs, init, shapes, classes, seconds, a.seed, cfg, a.adaptor_scale)
     print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {seconds:g} s, "
-                      f"adaptor scale {a.adaptor_scale:g}, R-precision by {len(encs)} evaluator(s)",
+                      f"adaptor scale {a.adaptor_scale:g}"
+                      + (f" (guidance against {'the other labels' if a.guidance == 'others' else 'the null label'})"
+                         if a.adaptor_scale > 1 else "") + f", R-precision by {len(encs)} evaluator(s)",
                       rows, ["R_precision", "R_min", "R_max", "ASR", "ANCR"]))
     print(format_confusion(rows, classes))
     if a.png:
@@ -454,6 +459,12 @@ def _eval_adaptation(a) -> int:
         label_grid(clips, a.png, title=f"{shown}: 5 rollouts per label, {seconds:g} s each")
         print(f"labelled rollouts: {a.png}")
     return 0
+
+
+def _add_guidance_arg(p) -> None:
+    p.add_argument("--guidance", choices=("others", "null"), default="others",
+                   help="what an adaptor scale above 1 steers away from: the other labels' predictions (ours; "
+                        "for targets always null) or the null control (PRIMAL's classifier-free guidance)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -533,6 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_runtime_args(sv)
     sv.add_argument("--threads", type=int, help="torch threads for generation")
     sv.add_argument("--adaptor", help="adaptor folder (action labels or reaching targets)")
+    _add_guidance_arg(sv)
     sv.add_argument("--open-browser", action="store_true")
     sv.add_argument("--headless", action="store_true", help="no server: replay --script on a virtual clock")
     sv.add_argument("--script", help="events JSON (from the studio's 'save events' or /api/events)")
@@ -548,6 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--impulse", action="append", help="NAME@SECONDS, e.g. left_kick@2 (repeatable)")
     g.add_argument("--goal", action="append", help="VX,VZ[@SECONDS] world m/s, or free[@SECONDS] (repeatable)")
     g.add_argument("--adaptor", help="adaptor folder from 'avatar-motor adapt' (labels or targets)")
+    _add_guidance_arg(g)
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
     g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
                    help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the classifier-free guidance weight (a second network pass)")
@@ -584,6 +597,7 @@ def build_parser() -> argparse.ArgumentParser:
         e = ev.add_parser(name, help=helptext)
         e.add_argument("--model", default=str(DEFAULT_MODEL))
         e.add_argument("--adaptors", nargs="+", required=True, help="NAME=FOLDER for each method to compare")
+        _add_guidance_arg(e)
         e.add_argument("--data", nargs="*", help="motion caches the adaptors were trained on (default: dataset-1 dataset-2)")
         e.add_argument("--label-key", default="content")
         e.add_argument("--encoder-steps", type=int, default=600)

@@ -62,6 +62,7 @@ class AdaptedDenoiser(nn.Module):
         super().__init__()
         cfg.validate()
         self.cfg = cfg
+        self.guidance = "others"  # what a scale above 1 steers away from: "others" or "null" (see _negative)
         # which base weights this adaptor starts from, taken before any training changes them
         self.base_fingerprint = base_fingerprint(base)
         # fine-tuning trains the base itself: on a copy, so the shared base model (the runtime's
@@ -105,10 +106,23 @@ class AdaptedDenoiser(nn.Module):
         out = self._forward(t, x_t, x0, y, s.clamp(max=1.0), drop)
         if guided.any():
             r = guided.nonzero()[:, 0]
-            null = self._forward(t[r], x_t[r], x0[r], y[r], 1.0, torch.ones(len(r), dtype=torch.bool))
             out = out.clone()
-            out[r] = out[r] + (s[r] - 1) * (out[r] - null)
+            out[r] = out[r] + (s[r] - 1) * (out[r] - self._negative(t[r], x_t[r], x0[r], y[r]))
         return out
+
+    def _negative(self, t, x_t, x0, y) -> torch.Tensor:
+        """What guidance steers away from: the null control (PRIMAL's Eq. 3), or with guidance
+        "others" (label adaptors) the mean of the other labels' predictions, in one batched pass.
+        Our addition: the null control continues the current state while a label turns it into
+        the action, so G(y) - G(null) also holds that departure and amplifying it slides the feet;
+        every label departs alike, so G(y) - mean G(other) holds only what tells y from the rest."""
+        if self.guidance == "null" or self.cfg.control != "label" or len(self.cfg.labels) < 2:
+            return self._forward(t, x_t, x0, y, 1.0, torch.ones(len(t), dtype=torch.bool))
+        n, B = len(self.cfg.labels), len(t)
+        others = (y[:, None] + torch.arange(1, n)[None]).remainder(n).flatten()  # (B * (n - 1),)
+        rep = lambda v: v.repeat_interleave(n - 1, 0)  # noqa: E731
+        pred = self._forward(rep(t), rep(x_t), rep(x0), others, 1.0, None)
+        return pred.view(B, n - 1, *pred.shape[1:]).mean(1)
 
     def _forward(self, t, x_t, x0, y, scale, drop: torch.Tensor | None) -> torch.Tensor:
         base = self.base
