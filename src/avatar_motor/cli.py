@@ -563,7 +563,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_guidance_arg(g)
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
     g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
-                   help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the classifier-free guidance weight (a second network pass)")
+                   help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the guidance weight (a second, batched network pass; see --guidance)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
     _add_runtime_args(g)
     g.add_argument("--out", required=True)

@@ -10,7 +10,8 @@ Three methods, as compared in PRIMAL's Tables A3/A4:
 The control is an action label (embedding layer, with a null label for classifier-free
 dropout) or a 2-D target (linear embedding; a mask stands for "no target").
 `scale` from 0 to 1 multiplies the adaptor's residuals: 0 gives the base model exactly, 1 the
-trained adaptor; above 1 it is the classifier-free guidance weight of Eq. 3 (see forward).
+trained adaptor; above 1 it is a guidance weight: of Eq. 3 against the null control (PRIMAL's), or
+for labels (the default) against the other labels (see _negative).
 Adaptor weights are saved on their own (safetensors + JSON), so many adaptors share one base.
 """
 from __future__ import annotations
@@ -97,10 +98,9 @@ class AdaptedDenoiser(nn.Module):
 
     def forward(self, t, x_t, x0, y, scale: float | torch.Tensor = 1.0, drop: torch.Tensor | None = None) -> torch.Tensor:
         """scale (a number or one per row, (B, 1, 1)): from 0 (the base model) to 1 (the trained
-        adaptor) the adaptor's residuals are scaled; above 1 it is the classifier-free guidance
-        weight gamma of Eq. (3), G(null) + gamma (G(y) - G(null)), whose unconditional model is
-        this adaptor with the null control (control dropout trained it): a second pass, for the
-        rows that ask for it."""
+        adaptor) the adaptor's residuals are scaled; above 1 it is the guidance weight gamma:
+        G(y) + (gamma - 1) (G(y) - N), with N the null control's prediction (Eq. 3, control dropout
+        trained it) or the other labels' (see _negative): one more pass, for the rows that ask for it."""
         s = torch.as_tensor(scale, dtype=x_t.dtype).reshape(-1, 1, 1).expand(len(x_t), 1, 1)
         guided = (s > 1).flatten()
         out = self._forward(t, x_t, x0, y, s.clamp(max=1.0), drop)

@@ -213,7 +213,7 @@ class Crowd:
 
     def set_label(self, i: int, label: str | None, scale: float = 1.0) -> None:
         """Action label of the adaptor (None releases); scale 0 = base model, 1 = as trained, above 1
-        classifier-free guidance of that weight (AdaptedDenoiser.forward)."""
+        guidance of that weight, against the adaptor's `guidance` (AdaptedDenoiser._negative)."""
         a = self._get(i)
         if label is None:
             a.label = None
