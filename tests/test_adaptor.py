@@ -409,21 +409,25 @@ def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch)
 
 
 @pytest.mark.parametrize("kind", ["controlnet", "finetune"])
-def test_guidance_against_the_other_labels(kind):
-    # ours: G(y) + (gamma - 1) (G(y) - mean of G(y') over the other labels y'), a batched pass
+def test_guidance_against_the_nearest_other_label(kind):
+    # ours: G(y) + (gamma - 1) (G(y) - G(y*)), y* the other label whose prediction is nearest G(y)
     m = AdaptedDenoiser(base_net(), AdaptorConfig(kind=kind, labels=["a", "b", "c"])).eval()
-    assert m.guidance == "others"  # the default for label adaptors
+    assert m.guidance == "nearest"  # the default for label adaptors
     with torch.no_grad():
         for p in m.parameters():
             p.add_(0.01)
     t, x, x0 = inputs()
     y = torch.tensor([0, 2, 1])
     with torch.no_grad():
-        by_label = [m(t, x, x0, torch.full((3,), k), scale=1.0) for k in range(3)]
+        by_label = torch.stack([m(t, x, x0, torch.full((3,), k), scale=1.0) for k in range(3)], 1)  # (B, 3, ...)
         cond = m(t, x, x0, y, scale=1.0)
-        others = torch.stack([(sum(by_label) - by_label[int(k)])[i] / 2 for i, k in enumerate(y)])
+        rival = []
+        for i, k in enumerate(y.tolist()):
+            d = {j: float((by_label[i, j] - cond[i]).square().sum()) for j in range(3) if j != k}
+            rival.append(by_label[i, min(d, key=d.get)])
+        rival = torch.stack(rival)
         for gamma in (1.5, 3.0):
-            assert torch.allclose(m(t, x, x0, y, scale=gamma), cond + (gamma - 1) * (cond - others), atol=1e-5)
+            assert torch.allclose(m(t, x, x0, y, scale=gamma), cond + (gamma - 1) * (cond - rival), atol=1e-5)
         # one label has no others: guidance falls back to the null control
         one = AdaptedDenoiser(base_net(), AdaptorConfig(kind=kind, labels=["a"])).eval()
         for p in one.parameters():

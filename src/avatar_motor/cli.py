@@ -447,7 +447,7 @@ def _eval_adaptation(a) -> int:
     rows, rollouts = eval_actions(motor, methods, encs, init, shapes, classes, seconds, a.seed, cfg, a.adaptor_scale)
     print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {seconds:g} s, "
                       f"adaptor scale {a.adaptor_scale:g}"
-                      + (f" (guidance against {'the other labels' if a.guidance == 'others' else 'the null label'})"
+                      + (f" (guidance against {'the nearest other label' if a.guidance == 'nearest' else 'the null label'})"
                          if a.adaptor_scale > 1 else "") + f", R-precision by {len(encs)} evaluator(s)",
                       rows, ["R_precision", "R_min", "R_max", "ASR", "ANCR"]))
     print(format_confusion(rows, classes))
@@ -462,9 +462,10 @@ def _eval_adaptation(a) -> int:
 
 
 def _add_guidance_arg(p) -> None:
-    p.add_argument("--guidance", choices=("others", "null"), default="others",
-                   help="what an adaptor scale above 1 steers away from: the other labels' predictions (ours; "
-                        "for targets always null) or the null control (PRIMAL's classifier-free guidance)")
+    p.add_argument("--guidance", choices=("nearest", "null"), default="nearest",
+                   help="what an adaptor scale above 1 steers away from: the prediction of the other label nearest "
+                        "to the commanded one's (ours; for targets always null) or the null control (PRIMAL's "
+                        "classifier-free guidance)")
 
 
 def build_parser() -> argparse.ArgumentParser:

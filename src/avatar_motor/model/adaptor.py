@@ -11,7 +11,7 @@ The control is an action label (embedding layer, with a null label for classifie
 dropout) or a 2-D target (linear embedding; a mask stands for "no target").
 `scale` from 0 to 1 multiplies the adaptor's residuals: 0 gives the base model exactly, 1 the
 trained adaptor; above 1 it is a guidance weight: of Eq. 3 against the null control (PRIMAL's), or
-for labels (the default) against the other labels (see _negative).
+for labels (the default) against the nearest other label (see _negative).
 Adaptor weights are saved on their own (safetensors + JSON), so many adaptors share one base.
 """
 from __future__ import annotations
@@ -63,7 +63,7 @@ class AdaptedDenoiser(nn.Module):
         super().__init__()
         cfg.validate()
         self.cfg = cfg
-        self.guidance = "others"  # what a scale above 1 steers away from: "others" or "null" (see _negative)
+        self.guidance = "nearest"  # what a scale above 1 steers away from: "nearest" or "null" (see _negative)
         # which base weights this adaptor starts from, taken before any training changes them
         self.base_fingerprint = base_fingerprint(base)
         # fine-tuning trains the base itself: on a copy, so the shared base model (the runtime's
@@ -100,29 +100,31 @@ class AdaptedDenoiser(nn.Module):
         """scale (a number or one per row, (B, 1, 1)): from 0 (the base model) to 1 (the trained
         adaptor) the adaptor's residuals are scaled; above 1 it is the guidance weight gamma:
         G(y) + (gamma - 1) (G(y) - N), with N the null control's prediction (Eq. 3, control dropout
-        trained it) or the other labels' (see _negative): one more pass, for the rows that ask for it."""
+        trained it) or the nearest other label's (see _negative): one more pass, for the rows that ask for it."""
         s = torch.as_tensor(scale, dtype=x_t.dtype).reshape(-1, 1, 1).expand(len(x_t), 1, 1)
         guided = (s > 1).flatten()
         out = self._forward(t, x_t, x0, y, s.clamp(max=1.0), drop)
         if guided.any():
             r = guided.nonzero()[:, 0]
             out = out.clone()
-            out[r] = out[r] + (s[r] - 1) * (out[r] - self._negative(t[r], x_t[r], x0[r], y[r]))
+            out[r] = out[r] + (s[r] - 1) * (out[r] - self._negative(t[r], x_t[r], x0[r], y[r], out[r]))
         return out
 
-    def _negative(self, t, x_t, x0, y) -> torch.Tensor:
+    def _negative(self, t, x_t, x0, y, cond: torch.Tensor) -> torch.Tensor:
         """What guidance steers away from: the null control (PRIMAL's Eq. 3), or with guidance
-        "others" (label adaptors) the mean of the other labels' predictions, in one batched pass.
-        Our addition: the null control continues the current state while a label turns it into
-        the action, so G(y) - G(null) also holds that departure and amplifying it slides the feet;
-        every label departs alike, so G(y) - mean G(other) holds only what tells y from the rest."""
+        "nearest" (label adaptors) the prediction of the other label nearest to this label's own
+        `cond`, per row and step (the others in one batched pass). Our addition: the null control
+        continues the current state while a label turns it into the action, so G(y) - G(null) also
+        holds that departure and amplifying it slides the feet; every label departs alike, so the
+        difference to the closest rival holds what tells y from the label it would be taken for."""
         if self.guidance == "null" or self.cfg.control != "label" or len(self.cfg.labels) < 2:
             return self._forward(t, x_t, x0, y, 1.0, torch.ones(len(t), dtype=torch.bool))
         n, B = len(self.cfg.labels), len(t)
         others = (y[:, None] + torch.arange(1, n)[None]).remainder(n).flatten()  # (B * (n - 1),)
         rep = lambda v: v.repeat_interleave(n - 1, 0)  # noqa: E731
-        pred = self._forward(rep(t), rep(x_t), rep(x0), others, 1.0, None)
-        return pred.view(B, n - 1, *pred.shape[1:]).mean(1)
+        pred = self._forward(rep(t), rep(x_t), rep(x0), others, 1.0, None).view(B, n - 1, *cond.shape[1:])
+        nearest = (pred - cond[:, None]).square().flatten(2).sum(-1).argmin(1)
+        return pred[torch.arange(B), nearest]
 
     def _forward(self, t, x_t, x0, y, scale, drop: torch.Tensor | None) -> torch.Tensor:
         base = self.base
