@@ -436,3 +436,6 @@ def test_guidance_against_the_nearest_other_label(kind):
         null = one(t, x, x0, y1, scale=1.0, drop=torch.ones(3, dtype=torch.bool))
         c1 = one(t, x, x0, y1, scale=1.0)
         assert torch.allclose(one(t, x, x0, y1, scale=2.0), c1 + (c1 - null), atol=1e-5)
+    m.guidance = "others"
+    with pytest.raises(ValueError, match="'nearest' or 'null'"):
+        m(t, x, x0, y, scale=2.0)

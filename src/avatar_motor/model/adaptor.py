@@ -117,6 +117,8 @@ class AdaptedDenoiser(nn.Module):
         continues the current state while a label turns it into the action, so G(y) - G(null) also
         holds that departure and amplifying it slides the feet; every label departs alike, so the
         difference to the closest rival holds what tells y from the label it would be taken for."""
+        if self.guidance not in ("nearest", "null"):
+            raise ValueError(f"adaptor guidance must be 'nearest' or 'null', not {self.guidance!r}")
         if self.guidance == "null" or self.cfg.control != "label" or len(self.cfg.labels) < 2:
             return self._forward(t, x_t, x0, y, 1.0, torch.ones(len(t), dtype=torch.bool))
         n, B = len(self.cfg.labels), len(t)
