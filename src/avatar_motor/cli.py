@@ -607,7 +607,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "R-precision is their mean, with min and max")
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
         e.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
-                       help="adaptor strength: 0 = base model, 1 = as trained, above 1 the classifier-free guidance weight")
+                       help="adaptor strength: 0 = base model, 1 = as trained, above 1 the guidance weight (see --guidance)")
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float)
         _add_runtime_args(e)
