@@ -90,13 +90,12 @@ def train_encoder(ds: SegmentDataset, label_key: str, classes: list[str], second
     return menc.eval(), lenc.eval()
 
 
-def _evaluator_key(ds: SegmentDataset, label_key: str, classes: list[str], seconds: float, steps: int, seed: int) -> str:
-    """What an evaluator is trained from: the clips (names, lengths, a checksum of their motion),
-    labels, window length, steps and seed."""
-    what = {"format": 1, "label_key": label_key, "classes": classes, "seconds": seconds, "steps": steps, "seed": seed,
+def _evaluator_source(ds: SegmentDataset, label_key: str, classes: list[str], seconds: float, steps: int) -> dict:
+    """What an evaluator is trained from, but its seed: the clips (names, lengths, a checksum of
+    their motion), labels, window length and steps."""
+    return {"format": 1, "label_key": label_key, "classes": classes, "seconds": seconds, "steps": steps,
             "clips": [[n, int(k)] for n, k in zip(ds.clip_names, ds.clip_len)],
             "motion": round(float(ds.root_pos.double().abs().sum()), 3)}
-    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def train_evaluators(ds: SegmentDataset, label_key: str, classes: list[str], seconds: float, steps: int,
@@ -107,9 +106,11 @@ def train_evaluators(ds: SegmentDataset, label_key: str, classes: list[str], sec
     folder) each evaluator is trained once and read back after: methods evaluated on different
     days or thread counts are then read by the same evaluators."""
     say = progress or (lambda m: None)
+    source = _evaluator_source(ds, label_key, classes, seconds, steps) if cache else None
     out = []
     for s in seeds:
-        path = cache / f"{_evaluator_key(ds, label_key, classes, seconds, steps, s)}.pt" if cache else None
+        key = hashlib.sha256(json.dumps({**source, "seed": s}, sort_keys=True).encode()).hexdigest()[:16] if cache else ""
+        path = cache / f"{key}.pt" if cache else None
         if path is not None and path.exists():
             try:
                 saved = torch.load(path, weights_only=True)
@@ -141,15 +142,10 @@ def predict_labels(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, can
     return (emb @ lenc(torch.arange(lenc.embed.num_embeddings)).T).argmax(-1)
 
 
-def r_precision(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, y: torch.Tensor,
-                canonical: bool = False) -> float:
-    """Top-1 R-precision: the fraction of motions whose nearest label embedding is y."""
-    return float((predict_labels(menc, lenc, X, canonical) == y).float().mean())
-
-
 def r_precisions(encoders: list, X: torch.Tensor, y: torch.Tensor, canonical: bool = False) -> dict:
-    """R-precision by each evaluator: their mean, min and max, and the confusion matrix averaged
-    over them (commanded rows, recognised columns)."""
+    """Top-1 R-precision (the fraction of motions whose nearest label embedding is y) by each
+    evaluator: their mean, min and max, and the confusion matrix averaged over them (commanded
+    rows, recognised columns)."""
     n = encoders[0][1].embed.num_embeddings
     rs, conf = [], torch.zeros(n, n)
     for menc, lenc in encoders:
