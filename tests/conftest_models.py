@@ -4,7 +4,7 @@ from pathlib import Path
 import torch
 
 from avatar_motor.data.dataset import Normalizer
-from avatar_motor.data.motion_state import STATE_DIM
+from avatar_motor.body.motion_state import STATE_DIM
 from avatar_motor.model.checkpoint import load_checkpoint, save_checkpoint
 from avatar_motor.model.denoiser import Denoiser, DenoiserConfig
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from avatar_motor.data.motion_state import STATE_DIM
+from avatar_motor.body.motion_state import STATE_DIM
 from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig, load_adaptor, rescale_target, save_adaptor
 from avatar_motor.model.denoiser import Denoiser, DenoiserConfig
 
@@ -356,7 +356,7 @@ def test_neighbour_swap_partners_are_near_states_of_other_clips():
 
 
 def test_feet_matching_compares_only_the_ankles_and_feet():
-    from avatar_motor.data.motion_state import SLICES, STATE_DIM
+    from avatar_motor.body.motion_state import SLICES, STATE_DIM
     from avatar_motor.train.adapt import _match_features
     feet, state = _match_features("feet"), _match_features("state")
     assert len(feet) == 2 * 4 * 3 and len(state) == 2 * 22 * 3 and set(feet.tolist()) <= set(state.tolist())
@@ -369,10 +369,10 @@ def test_feet_matching_compares_only_the_ankles_and_feet():
 
 def _yaw_locks_seen(monkeypatch) -> list:
     """Records, per segment, which bodies foot locking was asked to hold against yaw."""
-    from avatar_motor.runtime import crowd as crowd_module
+    from avatar_motor.runtime import stages
     seen = []
-    real = crowd_module.lock_feet
-    monkeypatch.setattr(crowd_module, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
+    real = stages.lock_feet
+    monkeypatch.setattr(stages, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
     return seen
 
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from avatar_motor.data.dataset import Normalizer
-from avatar_motor.data.motion_state import STATE_DIM
+from avatar_motor.body.motion_state import STATE_DIM
 from avatar_motor.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from avatar_motor.model.denoiser import Denoiser, DenoiserConfig
 from avatar_motor.model.diffusion import Diffusion, cosine_betas

@@ -5,7 +5,7 @@ from avatar_motor.body import rotations as rot
 from avatar_motor.body.skeleton import SHAPE_DIM, forward_kinematics, rest_offsets
 from avatar_motor.data.cache import MotionCache
 from avatar_motor.data.dataset import Normalizer, SegmentConfig, SegmentDataset
-from avatar_motor.data.motion_state import (STATE_DIM, canonicalize, facing_yaw, joints_of, pack, states_from_motion,
+from avatar_motor.body.motion_state import (STATE_DIM, canonicalize, facing_yaw, joints_of, pack, states_from_motion,
                                             to_world, unpack, velocities_of)
 
 from .fixture_tools import FIXTURES

@@ -5,7 +5,7 @@ import torch
 
 from avatar_motor.body import rotations as rot
 from avatar_motor.body.skeleton import PARENTS, forward_kinematics, rest_offsets
-from avatar_motor.data.motion_state import canonicalize, facing_yaw, joints_of, states_from_motion
+from avatar_motor.body.motion_state import canonicalize, facing_yaw, joints_of, states_from_motion
 from avatar_motor.data.retarget import Retargeted, load_mapping_file, resample, retarget
 from avatar_motor.io.bvh import read_bvh
 from avatar_motor.viz import contact_sheet

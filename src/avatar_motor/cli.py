@@ -102,8 +102,7 @@ def _runtime_config(a):
     if getattr(a, "steps", None):
         cfg.steps = a.steps
     if getattr(a, "no_processing", False):
-        cfg.reproject = cfg.snap = cfg.inertialize = cfg.lock_feet = cfg.fit_rotations = False
-        cfg.smooth_sigma = cfg.fuse_velocity = cfg.turn_rate = 0.0
+        cfg.stages = ()  # the network's output as one body: FK of its rotations (the runtime's fk stage)
     fields = {f.name: f for f in dataclasses.fields(RuntimeConfig)}
     for item in getattr(a, "runtime", None) or []:
         name, eq, value = item.partition("=")
@@ -111,6 +110,8 @@ def _runtime_config(a):
             raise ValueError(f"--runtime {item!r}: write NAME=VALUE with NAME one of {', '.join(fields)}")
         kind = type(getattr(cfg, name))
         try:
+            if kind is tuple:  # a list of names: a,b,c
+                value = tuple(v for v in value.split(",") if v)
             setattr(cfg, name, value.lower() in ("1", "true", "yes", "on") if kind is bool else kind(value))
         except ValueError:
             raise ValueError(f"--runtime {item!r}: {name} takes a {kind.__name__}") from None
@@ -120,9 +121,9 @@ def _runtime_config(a):
 def _add_runtime_args(parser) -> None:
     parser.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
     parser.add_argument("--no-processing", action="store_true",
-                        help="the network's raw output: no re-projection, fusion, foot locking, smoothing, snapping, blending or rotation fitting")
+                        help="the network's raw output as one body (FK of its rotations on the predicted pelvis): no post-processing stage")
     parser.add_argument("--runtime", action="append", metavar="NAME=VALUE",
-                        help="set a runtime option, e.g. smooth_sigma=0 or lock_feet=false (repeatable)")
+                        help="set a runtime option, e.g. smooth_sigma=0 or stages=fuse_velocities,lock_feet,leg_ik (repeatable)")
 
 
 def _eval_realism(a) -> int:
@@ -173,7 +174,7 @@ def load_init(spec: str, shape=None):
 
     from .body import rotations as rot
     from .body.skeleton import rest_offsets
-    from .data.motion_state import states_from_motion
+    from .body.motion_state import states_from_motion
     from .data.retarget import resample, retarget
     from .io.bvh import read_bvh
     from .io.export import read_npz_states
@@ -324,8 +325,8 @@ def _eval_control(a) -> int:
     from .eval.control import control, format_control
     from .model.checkpoint import load_checkpoint
 
-    rows, what = control(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
-    print(format_control(rows, what, a.n, a.seconds))
+    rows, what, body = control(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
+    print(format_control(rows, what, a.n, a.seconds, body))
     return 0
 
 
@@ -333,8 +334,8 @@ def _eval_impulses(a) -> int:
     from .eval.control import format_impulses, impulses
     from .model.checkpoint import load_checkpoint
 
-    rows, what = impulses(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
-    print(format_impulses(rows, what, a.n, a.seconds))
+    rows, what, body = impulses(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
+    print(format_impulses(rows, what, a.n, a.seconds, body))
     return 0
 
 

@@ -17,7 +17,7 @@ import torch
 from ..body import rotations as rot
 from ..body.skeleton import MIRROR, SHAPE_DIM, forward_kinematics, pelvis_height, random_shapes, rest_offsets
 from .cache import MotionCache, is_held_out
-from .motion_state import FPS, STATE_DIM, canonicalize, finite_velocities, pack
+from ..body.motion_state import FPS, STATE_DIM, canonicalize, finite_velocities, pack
 
 _M = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
 

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..data.dataset import SegmentDataset
-from ..data.motion_state import FPS, SLICES, canonicalize, joints_of
+from ..body.motion_state import FPS, SLICES, canonicalize, joints_of
 from ..model.checkpoint import Motor
 from ..runtime.crowd import RuntimeConfig
 from . import metrics as M
@@ -188,7 +188,7 @@ def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0,
                cfg: RuntimeConfig | None = None, scale: float = 1.0) -> tuple[list[dict], dict]:
     """Rows of Table A4 and the pelvis paths {method: (8 targets, n, T, 2)} in each initial state's
     own frame (x left, z forward), where the targets are TARGETS."""
-    from ..data.motion_state import canonical_transform
+    from ..body.motion_state import canonical_transform
     cfg = cfg or RuntimeConfig()
     tf = canonical_transform(init.double())
     rows, paths = [], {}

@@ -10,12 +10,12 @@ import torch
 from ..body.skeleton import JOINT_INDEX
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
-from ..data.motion_state import FPS, joints_of
+from ..body.motion_state import FPS, joints_of
 from ..model.checkpoint import Motor
 from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
 from ..runtime.guidance import facing_of
 from . import metrics as M
-from .realism import rollout
+from .realism import BodyCheck, format_body, rollout
 
 DIRECTIONS = {"forward": (0.0, 1.0), "left": (1.0, 0.0), "right": (-1.0, 0.0), "back": (0.0, -1.0)}
 
@@ -31,15 +31,17 @@ def initial_states(caches: list[MotionCache] | None, n: int, seed: int):
 
 
 def control(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int = 0,
-            cfg: RuntimeConfig | None = None) -> tuple[list[dict], str]:
+            cfg: RuntimeConfig | None = None) -> tuple[list[dict], str, dict]:
     """Goals in the body frame of each initial state (forward/left/right/back x 1 and 4 m/s);
-    errors measured after 1 s: mean pelvis-velocity error (m/s) and facing error (|z - r|)."""
+    errors measured after 1 s: mean pelvis-velocity error (m/s) and facing error (|z - r|), on
+    the exported body. Returns the rows, what the initial states are, and the one-body figures."""
     cfg = cfg or RuntimeConfig()
+    check = BodyCheck()
     init, shapes, what = initial_states(caches, n, seed)
-    from ..data.motion_state import canonical_transform
+    from ..body.motion_state import canonical_transform
     R = canonical_transform(init.double()).R.float()  # body -> world yaw per initial state
     rows = []
-    base = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed)
+    base = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check)
     rows.append({"goal": "none (unguided)", "vel_err": float("nan"), "dir_err": float("nan"), "ASR": M.asr(joints_of(base))})
     for name, (dx, dz) in DIRECTIONS.items():
         for speed in (1.0, 4.0):
@@ -50,7 +52,7 @@ def control(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int =
                     for k, i in enumerate(sorted(crowd.avatars)):
                         crowd.set_goal(i, (float(g_world[k, 0]), float(g_world[k, 2])))
 
-            X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls)
+            X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls, check=check)
             J = joints_of(X)
             after = int(FPS)  # after 1 s
             # mean joint velocity over each remaining second, horizontal, vs the goal
@@ -61,10 +63,10 @@ def control(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int =
             r = g / g.norm(dim=-1, keepdim=True)
             dir_err = float((z - r).norm(dim=-1).mean())
             rows.append({"goal": f"{name} {speed:g} m/s", "vel_err": vel_err, "dir_err": dir_err, "ASR": M.asr(J)})
-    return rows, what
+    return rows, what, check.summary()
 
 
-def format_control(rows: list[dict], what: str, n: int, seconds: float) -> str:
+def format_control(rows: list[dict], what: str, n: int, seconds: float, body: dict) -> str:
     guided = [r for r in rows if not math.isnan(r["vel_err"])]
     mean = {k: sum(r[k] for r in guided) / len(guided) for k in ("vel_err", "dir_err", "ASR")}
     out = [f"guidance control (supplementary Table A2): {n} {what} x {seconds:g} s, errors after 1 s",
@@ -73,6 +75,7 @@ def format_control(rows: list[dict], what: str, n: int, seconds: float) -> str:
         out.append(f"{r['goal']:18s} {r['vel_err']:14.3f} {r['dir_err']:8.3f} {r['ASR']:6.3f}")
     out.append(f"{'mean (guided)':18s} {mean['vel_err']:14.3f} {mean['dir_err']:8.3f} {mean['ASR']:6.3f}"
                f"   PRIMAL InContext: 1.040 0.140 0.109; ASR vs unguided +{mean['ASR'] - rows[0]['ASR']:.3f}")
+    out.append(format_body(body))
     return "\n".join(out)
 
 
@@ -117,9 +120,10 @@ def impulse_success(preset: str, X: torch.Tensor) -> torch.Tensor:
 
 
 def impulses(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int = 0,
-             cfg: RuntimeConfig | None = None) -> tuple[list[dict], str]:
+             cfg: RuntimeConfig | None = None) -> tuple[list[dict], str, dict]:
     cfg = cfg or RuntimeConfig()
     init, shapes, what = initial_states(caches, n, seed)
+    check = BodyCheck()
     rows = []
     for preset in IMPULSE_PRESETS:
         def controls(crowd, seg, preset=preset):
@@ -127,17 +131,18 @@ def impulses(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int 
                 for i in crowd.avatars:
                     crowd.impulse(i, preset)
 
-        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls)
+        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls, check=check)
         J = joints_of(X)
         ok = impulse_success(preset, X)
         rows.append({"preset": preset, "success": float(ok.float().mean()), "ASR": M.asr(J), "ANCR": M.ancr(J)})
-    return rows, what
+    return rows, what, check.summary()
 
 
-def format_impulses(rows, what, n, seconds) -> str:
+def format_impulses(rows, what, n, seconds, body: dict) -> str:
     out = [f"impulses (Table 2 / Table A1): {n} {what} x {seconds:g} s each",
            f"{'preset':14s} {'success':>8s} {'ASR':>6s} {'ANCR':>6s}"]
     out += [f"{r['preset']:14s} {r['success']:8.2f} {r['ASR']:6.3f} {r['ANCR']:6.3f}" for r in rows]
+    out.append(format_body(body))
     return "\n".join(out)
 
 
@@ -159,7 +164,7 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
 
 def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256) -> str:
     default = RuntimeConfig()
-    plain50 = RuntimeConfig(steps=50, reproject=False, snap=False, inertialize=False)
+    plain50 = RuntimeConfig(steps=50, stages=())
     settings = [
         ("50 steps", plain50, False),
         ("50 steps + proc.", RuntimeConfig(steps=50), False),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..body.skeleton import JOINT_INDEX
-from ..data.motion_state import FPS
+from ..body.motion_state import FPS
 
 FEET = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
 

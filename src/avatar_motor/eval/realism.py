@@ -13,7 +13,7 @@ from ..body import rotations as rot
 from ..body.skeleton import forward_kinematics, rest_offsets
 from ..data.cache import MotionCache, is_held_out
 from ..data.dataset import SegmentConfig, SegmentDataset
-from ..data.motion_state import FPS, joints_of, unpack
+from ..body.motion_state import FPS, SLICES, body_joints, body_mismatch, finite_velocities, joints_of, unpack
 from ..model.checkpoint import Motor
 from ..runtime.crowd import Crowd, RuntimeConfig
 from . import metrics as M
@@ -64,10 +64,47 @@ def training_poses(caches: list[MotionCache], n: int, g: torch.Generator) -> tor
     return rot.quat_to_matrix(torch.stack(out))[:, 1:].float()
 
 
+class BodyCheck:
+    """The one-body figures of the rollouts it is shown: the distance between the joint locations
+    the runtime emitted and FK of the rotations it emitted (max and 99th percentile over every
+    joint of every frame), and the lowest joint of the exported body."""
+
+    def __init__(self):
+        self.dist: list[torch.Tensor] = []
+        self.lowest = float("inf")
+
+    def add(self, X: torch.Tensor, shapes: torch.Tensor) -> None:
+        off = rest_offsets(shapes, torch.float64)[:, None]
+        self.dist.append(body_mismatch(X.double(), off).flatten().float())
+        self.lowest = min(self.lowest, float(body_joints(X.double(), off)[..., 1].min()))
+
+    def summary(self) -> dict:
+        d = torch.cat(self.dist)
+        return {"body_mismatch_max_mm": 1000 * float(d.max()),
+                "body_mismatch_p99_mm": 1000 * float(torch.quantile(d[torch.randperm(len(d), generator=torch.Generator().manual_seed(0))[:1_000_000]], 0.99)),
+                "lowest_joint_m": self.lowest}
+
+
+def exported(X: torch.Tensor, shapes: torch.Tensor) -> torch.Tensor:
+    """States (B, T, 267) whose joint locations and velocities are those of the exported body
+    (FK of the rotations on each shape): what every metric reads."""
+    J = body_joints(X.double(), rest_offsets(shapes, torch.float64)[:, None])
+    out = X.clone()
+    out[..., SLICES["joints"]] = J.reshape(*X.shape[:-1], 66).to(X.dtype)
+    out[..., SLICES["velocities"]] = finite_velocities(J).reshape(*X.shape[:-1], 66).to(X.dtype)
+    return out
+
+
+def format_body(r: dict) -> str:
+    return (f"one body: joints emitted vs FK of rotations emitted: max {r['body_mismatch_max_mm']:.3f} mm, "
+            f"p99 {r['body_mismatch_p99_mm']:.3f} mm (goal <= 1 mm); lowest exported joint {100 * r['lowest_joint_m']:+.1f} cm (goal >= -2 cm)")
+
+
 def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int, cfg: RuntimeConfig, seed: int,
-            controls=None, adaptor=None) -> torch.Tensor:
-    """Batched autoregressive rollout: (B, 1 + frames, 267) world states, init first.
-    controls(crowd, segment_index) may set goals/impulses/labels before each segment."""
+            controls=None, adaptor=None, check: BodyCheck | None = None) -> torch.Tensor:
+    """Batched autoregressive rollout: (B, 1 + frames, 267) world states of the exported body
+    (`exported`), init first. controls(crowd, segment_index) may set goals/impulses/labels before
+    each segment; `check` collects the one-body figures of what the runtime emitted."""
     crowd = Crowd(motor, cfg, seed, adaptor)
     ids = [crowd.spawn(init[k], shapes[k]) for k in range(len(init))]
     segs = [init[:, None].float()]
@@ -78,7 +115,10 @@ def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int,
         out = crowd.step_segment()
         segs.append(torch.stack([out[i] for i in ids]))
         n += 1
-    return torch.cat(segs, 1)[:, : frames + 1]
+    X = torch.cat(segs, 1)[:, : frames + 1]
+    if check is not None:
+        check.add(X, shapes)
+    return exported(X, shapes)
 
 
 def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float = 8.0, seed: int = 0,
@@ -90,7 +130,8 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     x, shapes = held.sample(n, g)
     init = x[:, 0]
     t0 = time.time()
-    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed)
+    check = BodyCheck()
+    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check)
     gen_time = time.time() - t0
     J = joints_of(X)
     real = RealData.load(caches)
@@ -115,6 +156,7 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
         "alive": M.alive_ratio(J), "alive_real": M.alive_ratio(Jr),
         "seconds_per_rollout_batch": gen_time,
     }
+    res.update(check.summary())
     if stability_seconds > 0:
         k = min(stability_n, n)
         Xs = rollout(motor, init[:k], shapes[:k], int(stability_seconds * FPS), cfg, seed + 1)
@@ -150,6 +192,7 @@ def format_realism(r: dict) -> str:
     out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps",
            f"{'metric':34s} {'generated':>10s} {'real':>8s}  goal"]
     out += [f"{a:34s} {b:>10s} {c:>8s}  {d}" for a, b, c, d in rows]
+    out.append(format_body(r))
     if "stability_seconds" in r:
         out.append(f"stability {r['stability_seconds']:.0f} s x {r['stability_n']}: no NaN {r['stable_no_nan']}, "
                    f"pelvis height {r['stable_pelvis_band'][0]:.2f}..{r['stable_pelvis_band'][1]:.2f} m "

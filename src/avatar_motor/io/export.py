@@ -13,7 +13,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, SHAPE_NAMES, rest_offsets
-from ..data.motion_state import FPS, unpack
+from ..body.motion_state import FPS, unpack
 from .bvh import bvh_from_rotations, write_bvh
 
 BVH_SCALE = 100.0  # metres -> centimetres, what BVH viewers expect

@@ -14,7 +14,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES, PARENTS, rest_offsets
-from ..data.motion_state import unpack
+from ..body.motion_state import unpack
 
 _FLOAT, _UINT16 = 5126, 5123
 _ARRAY, _ELEMENTS = 34962, 34963

@@ -15,7 +15,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from ..data.dataset import Normalizer
-from ..data.motion_state import SLICES, STATE_DIM
+from ..body.motion_state import SLICES, STATE_DIM
 from .denoiser import Denoiser, DenoiserConfig
 from .diffusion import Diffusion
 

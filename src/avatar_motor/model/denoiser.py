@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..data.motion_state import STATE_DIM
+from ..body.motion_state import STATE_DIM
 
 
 @dataclass

@@ -20,10 +20,10 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
-from ..data.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
+from ..body.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, facing_of, move_loss_and_grad, path_loss_and_grad
-from .processing import fit_rotations, fuse_velocities, inertialize, lock_feet, reproject, smooth_segment, snap_to_ground, turn_toward
+from .stages import DEFAULT_STAGES, SegmentBatch, StageContext, check_stages, run_stages
 
 
 def _joints(*names: str) -> list[int]:
@@ -48,13 +48,12 @@ STEER_JOINTS = _joints("pelvis", "spine1", "spine2", "spine3", "neck", "head", "
 @dataclass
 class RuntimeConfig:
     steps: int = 8  # denoising steps per segment (PRIMAL: 10 "not visibly inferior" to 50; 8 measured as good here)
-    reproject: bool = False  # PRIMAL's joint re-projection; off: with this model it raises jitter 2.5x -> 12.3x (measured)
-    snap: bool = True
-    inertialize: bool = True
+    # post-processing stages by name, in order (runtime/stages.py); a body stage (leg_ik or fk)
+    # always ends the list, so every frame that leaves the runtime is one body
+    stages: tuple[str, ...] = DEFAULT_STAGES
     inertia_halflife: float = 0.2  # 0.1 measured jerkier at the joins and more skating
     smooth_sigma: float = 1.25  # temporal low-pass of each segment, frames (0 = off); our addition
     still_sigma: float = 3.0  # the low-pass of a nearly still body (speed-adaptive, One-Euro-like)
-    lock_feet: bool = True  # planted feet do not slide: root motion corrected from foot contacts (not under gradient speed guidance); our addition
     # for bodies with a facing goal, foot locking also undoes the yaw they make on both planted
     # feet (their turning is turn_toward's, in single support). Measured on eval control (45 x 3 s,
     # seeds 0/1): ASR over unguided +0.013/+0.020 -> +0.009/+0.016, facing error 0.084 -> 0.096.
@@ -66,7 +65,6 @@ class RuntimeConfig:
     # the action: eval actions, 45 x 5 labels x 3 s, one adaptor: ASR 0.057 -> 0.043 at scale 1,
     # 0.082 -> 0.065 at CFG 2; R-precision 0.871 -> 0.840 and 0.884 -> 0.871)
     lock_yaw: bool = True
-    fit_rotations: bool = False  # rotations re-aimed at the generated joint locations; our addition (measured: naturalness 6.45 -> 7.62, so off)
     fuse_velocity: float = 3.0  # weight of the predicted velocities in the joint locations (0 = off); our addition
     # speed and direction control. Default: steering impulses (ours), which the network turns into
     # steps; measured on eval control (16 states): velocity error 0.57 vs 1.33 m/s, facing error
@@ -163,6 +161,7 @@ class Crowd:
         self.motor = motor
         self.adaptor = adaptor
         self.cfg = config or RuntimeConfig()
+        check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
         self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
         self._next_id = 0
@@ -300,13 +299,13 @@ class Crowd:
     def refill(self, min_frames: int) -> int:
         """Generate one segment (in one batch) for every avatar with fewer than `min_frames` queued
         frames, continuing from the last queued frame. Returns how many avatars were served."""
-        job = self.prepare(min_frames)
-        if job is None:
+        batch = self.prepare(min_frames)
+        if batch is None:
             return 0
-        self.commit(job, self.compute(job))
-        return len(job["avatars"])
+        self.commit(batch, self.compute(batch))
+        return len(batch)
 
-    def prepare(self, min_frames: int):
+    def prepare(self, min_frames: int) -> SegmentBatch | None:
         """Snapshot what to generate (call under the owner's lock in threaded use)."""
         avs = [a for a in self.avatars.values() if len(a.queue) < min_frames]
         if not avs:
@@ -319,12 +318,12 @@ class Crowd:
                 dv[k] = a.pending_velocity.double()
                 a.pending_velocity = None
                 impulse[k] = True
-        return {"avatars": [a.id for a in avs], "epochs": [a.epoch for a in avs], "x0": x0,
-                "impulse_velocity": dv, "impulse": impulse,
-                "shapes": torch.stack([a.shape for a in avs]), "gens": [a.gen for a in avs],
-                "labels": [a.label for a in avs], "control_scales": [a.control_scale for a in avs],
-                "targets": [a.target for a in avs], "adapted": [a.adapted for a in avs],
-                "v_goal": [a.v_goal for a in avs], "facing_goal": [self._facing_goal(a) for a in avs]}
+        return SegmentBatch(
+            avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, impulse_velocity=dv, impulse=impulse,
+            shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
+            control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
+            adapted=[a.adapted for a in avs], v_goal=[a.v_goal for a in avs],
+            facing_goal=[self._facing_goal(a) for a in avs])
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
@@ -340,102 +339,62 @@ class Crowd:
         return None if a.near_target else torch.tensor([d[0] / n, 0.0, d[1] / n])
 
     @torch.inference_mode()
-    def compute(self, job) -> torch.Tensor:
+    def compute(self, batch: SegmentBatch) -> torch.Tensor:
         """Algorithm 1 for a prepared batch; touches no avatar (safe outside the lock)."""
         import time
 
         cfg, motor = self.cfg, self.motor
         t0 = time.perf_counter()
-        x0 = job["x0"]
+        x0 = batch.x0
         B = len(x0)
-        offsets = rest_offsets(job["shapes"], torch.float64)
-        # 1 canonicalize (+ re-projection)
+        offsets = rest_offsets(batch.shapes, torch.float64)
+        # 1 canonicalize
         tf = canonical_transform(x0)
         Rt = tf.R.transpose(-1, -2)
         x0c = apply_transform(x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
-        if cfg.reproject:
-            x0c = reproject(x0c, offsets)
         # the network sees the impulse in x0's velocities; the blending below keeps the true x0
         x0_cond = x0c.clone()
-        x0_cond[:, SLICES["velocities"]] += (job["impulse_velocity"] @ Rt.transpose(-1, -2)).reshape(B, 66)
+        x0_cond[:, SLICES["velocities"]] += (batch.impulse_velocity @ Rt.transpose(-1, -2)).reshape(B, 66)
         if cfg.steer_impulse > 0 or cfg.turn_impulse > 0:
-            self._steer(x0_cond, job["v_goal"], job["facing_goal"], Rt)
+            self._steer(x0_cond, batch.v_goal, batch.facing_goal, Rt)
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance
         norm = motor.norm
         cond = norm.encode(x0_cond.float())
-        guide = self._guidance(job["v_goal"], job["facing_goal"], Rt.float(), x0c.float())
+        guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float())
         N = self.frames_per_segment
-        seg_n = motor.diffusion.sample(self._denoiser(job, tf, cond), (B, N, STATE_DIM), cfg.steps, job["gens"], guide, cfg.eta)
+        seg_n = motor.diffusion.sample(self._denoiser(batch, tf, cond), (B, N, STATE_DIM), cfg.steps, batch.gens, guide, cfg.eta)
         t2 = time.perf_counter()
-        seg = norm.decode(seg_n).double()
-        seg = fuse_velocities(x0c, seg, cfg.fuse_velocity)
-        turned = None
-        if cfg.turn_rate > 0 and any(f is not None for f in job["facing_goal"]):
-            seg, turned = self._turn(x0c, seg, job["facing_goal"], Rt)
-        if cfg.lock_feet:
-            # not under gradient speed guidance: with it this model glides rather than steps, and
-            # locking its feet would stop the avatar (measured: 0.03 m instead of 1.8 m in 4 s)
-            gliding = cfg.move_weight > 0 or cfg.path_weight > 0
-            seg = lock_feet(x0c, seg, where=torch.tensor([v is None or not gliding for v in job["v_goal"]]),
-                            yaw=torch.tensor([cfg.lock_yaw and (f is not None or ad) for f, ad in zip(job["facing_goal"], job["adapted"])]),
-                            turned=turned)
-        if cfg.smooth_sigma > 0:
-            seg = smooth_segment(x0c, seg, self._smoothing(x0c, seg))
-        if cfg.snap:
-            seg = snap_to_ground(seg)
-        if cfg.inertialize:
-            seg = inertialize(x0c, seg, cfg.inertia_halflife, match_velocity=~job["impulse"])
-        if cfg.fit_rotations:
-            seg = fit_rotations(seg, offsets)
+        # test-time processing, ending in one body
+        seg = run_stages(cfg, StageContext(x0c, offsets, batch, Rt), norm.decode(seg_n).double())
         # 4 back to world
         seg_w = apply_transform(seg, tf.R, tf.t).float()
         t3 = time.perf_counter()
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": B}
         return seg_w
 
-    def _denoiser(self, job, tf, cond):
+    def _denoiser(self, batch: SegmentBatch, tf, cond):
         """The base network, or the adaptor with per-avatar controls (scale 0 for the avatars it does
         not steer, which is the base model exactly)."""
         net, ad = self.motor.net, self.adaptor
-        if ad is None or not any(job["adapted"]):
+        if ad is None or not any(batch.adapted):
             return lambda x_t, t: net(t, x_t, cond)
-        scale = torch.tensor([s if on else 0.0 for on, s in zip(job["adapted"], job["control_scales"])])
+        scale = torch.tensor([s if on else 0.0 for on, s in zip(batch.adapted, batch.control_scales)])
         if ad.cfg.control == "label":
-            y = torch.tensor([lb if lb is not None else ad.null_label for lb in job["labels"]])
+            y = torch.tensor([lb if lb is not None else ad.null_label for lb in batch.labels])
         else:
             Rt = tf.R.transpose(-1, -2).float()
-            y = torch.zeros(len(job["targets"]), 2)
-            for k, tg in enumerate(job["targets"]):
+            y = torch.zeros(len(batch), 2)
+            for k, tg in enumerate(batch.targets):
                 if tg is not None:
                     local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
                     y[k] = local[[0, 2]]
         s = scale[:, None, None]
         return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
 
-    def _turn(self, x0c: torch.Tensor, seg: torch.Tensor, f_goals: list, Rt: torch.Tensor):
-        """Root adjustment toward each body's facing goal (bodies without one are left alone):
-        the turned segment and the yaw added per frame."""
-        yaw = torch.zeros(len(seg), dtype=seg.dtype)
-        for k, f in enumerate(f_goals):
-            if f is not None:
-                g = Rt[k] @ f.double()
-                yaw[k] = torch.atan2(g[0], g[2])
-        return turn_toward(x0c, seg, yaw, self.cfg.turn_rate, self.cfg.turn_tolerance, torch.tensor([f is not None for f in f_goals]))
-
-    def _smoothing(self, x0c: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
-        """Per-body smoothing width: smooth_sigma when moving, up to still_sigma for a body that is
-        nearly still (mean joint speed below 0.1 m/s, ramping up to 0.5), like a One-Euro filter: the
-        network's residual wobble is what a still body shows most, and real idling is very still."""
-        cfg = self.cfg
-        J = torch.cat((x0c[:, None], seg), 1)[..., SLICES["joints"]].reshape(len(seg), -1, 22, 3)
-        speed = ((J[:, 1:] - J[:, :-1]).norm(dim=-1).mean((1, 2)) * FPS)
-        still = ((0.5 - speed) / 0.4).clamp(0.0, 1.0)
-        return cfg.smooth_sigma + max(0.0, cfg.still_sigma - cfg.smooth_sigma) * still
-
-    def commit(self, job, seg_w: torch.Tensor) -> None:
+    def commit(self, batch: SegmentBatch, seg_w: torch.Tensor) -> None:
         """Append generated frames, unless a command interrupted the avatar meanwhile."""
-        for k, (i, epoch) in enumerate(zip(job["avatars"], job["epochs"])):
+        for k, (i, epoch) in enumerate(zip(batch.avatars, batch.epochs)):
             a = self.avatars.get(i)
             if a is not None and a.epoch == epoch:
                 a.queue.extend(seg_w[k].unbind(0))

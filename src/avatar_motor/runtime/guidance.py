@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from ..body.skeleton import JOINT_INDEX
-from ..data.motion_state import SLICES
+from ..body.motion_state import SLICES
 
 _LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
 _J0 = SLICES["joints"].start
@@ -36,7 +36,7 @@ def path_loss_and_grad(x: torch.Tensor, x0: torch.Tensor, v_goal: torch.Tensor) 
     gets the same pull), so it steers without bending the pose; L_move alone acts on the velocity
     channels only, which a small model follows weakly.
     x (B, N, 267), x0 (B, 267) the initial state, v_goal (B, 3)."""
-    from ..data.motion_state import FPS
+    from ..body.motion_state import FPS
     B, N, _ = x.shape
 
     def centroid(s):

@@ -1,8 +1,9 @@
-"""Test-time processing. PRIMAL supplementary §8.2.2: joint re-projection, snapping to the ground,
-and inertialization blending with Holden's decaying springs (Spring-It-On). Ours, each measured
-against the shipped model (see the runtime defaults): velocity fusion, root adjustment toward a
-facing goal, foot locking (with yaw for steered bodies), trend-keeping (and speed-adaptive)
-smoothing, velocity-matched blending, and rotation fitting (off)."""
+"""Test-time processing. PRIMAL supplementary §8.2.2: snapping to the ground and inertialization
+blending with Holden's decaying springs (Spring-It-On); PRIMAL's joint re-projection is what
+`solve_body` makes of every frame (the one body: FK of the rotations, legs by two-bone IK). Ours,
+each measured against the shipped model (see runtime/stages.py): velocity fusion, root adjustment
+toward a facing goal, foot locking (with yaw for steered bodies), trend-keeping (and
+speed-adaptive) smoothing, velocity-matched blending."""
 from __future__ import annotations
 
 import math
@@ -11,16 +12,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, PARENTS, forward_kinematics
-from ..data.motion_state import FPS, SLICES, facing_yaw, pack, unpack
-
-
-def reproject(x0: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """Replace the joint locations of states (B, 267) by the FK of their own rotations."""
-    u = unpack(x0)
-    J, _ = forward_kinematics(u.root_pos, u.root_rot, u.local_rot, offsets)
-    out = x0.clone()
-    out[..., SLICES["joints"]] = J.reshape(*x0.shape[:-1], 66)
-    return out
+from ..body.motion_state import FPS, SLICES, facing_yaw, pack, unpack
 
 
 def _pack_moving(x0: torch.Tensor, root_pos, root_rot, local_rot, joints: torch.Tensor) -> torch.Tensor:
@@ -38,30 +30,88 @@ def _move_frames(x0: torch.Tensor, u, R: torch.Tensor, t: torch.Tensor) -> torch
     return _pack_moving(x0, root_pos, R @ u.root_rot, u.local_rot, joints)
 
 
-def fit_rotations(seg: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """Joint rotations that point every bone at the generated joint locations (our addition: the
-    inverse of PRIMAL's re-projection). The network's locations are its better channel (fused with
-    its velocities, foot-locked, smoothed); its rotations miss them by a few cm. Top-down, each
-    joint's predicted world rotation is turned by the smallest rotation (one child) or the Kabsch
-    rotation (several children) that takes its rest bone directions onto the generated ones; the
-    predicted twist is kept. Locations are unchanged. seg (B, N, 267), offsets (B, 22, 3)."""
+_LEGS = [tuple(JOINT_INDEX[f"{side}_{j}"] for j in ("hip", "knee", "ankle", "foot")) for side in ("left", "right")]
+
+
+def _global_rotations(root_rot: torch.Tensor, local_rot: torch.Tensor) -> list[torch.Tensor]:
+    G = [root_rot]
+    for j in range(1, len(PARENTS)):
+        G.append(G[PARENTS[j]] @ local_rot[..., j - 1, :, :])
+    return G
+
+
+def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch.Tensor,
+                bend_axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotations that put the end c of the chain a-b-c (hip, knee, ankle positions (..., 3)) on
+    `target`, bone lengths kept: the knee first opens or closes about the normal of the chain's
+    plane to the distance |target - a| (clamped to what the bones reach), then the whole chain
+    turns about a by the smallest rotation onto the target, so the knee stays in its plane.
+    bend_axis (..., 3) is the knee's hinge for a straight leg, whose plane is undefined: the
+    axis about which a positive turn bends the knee (closes its angle). Returns the world rotations (..., 3, 3)
+    to apply at b (before) and at a (after): G_b' = R_a R_b G_b, G_a' = R_a G_a."""
+    lab, lcb = (b - a).norm(dim=-1), (c - b).norm(dim=-1)
+    lat = (target - a).norm(dim=-1).clamp(min=(lab - lcb).abs() + 1e-4, max=lab + lcb - 1e-4)
+    cos_now = (rot.normalize(a - b) * rot.normalize(c - b)).sum(-1).clamp(-1.0, 1.0)
+    cos_want = ((lab**2 + lcb**2 - lat**2) / (2 * lab * lcb)).clamp(-1.0, 1.0)
+    # the plane's normal, oriented so that a positive turn bends the knee further; the hinge
+    # takes over continuously as the leg straightens
+    n = rot.normalize(torch.cross(b - a, c - b, dim=-1) + 1e-3 * bend_axis)
+    R_b = rot.axis_angle_to_matrix(n * (torch.acos(cos_now) - torch.acos(cos_want))[..., None])
+    c_new = b + (R_b @ (c - b)[..., None])[..., 0]
+    R_a = rot.rotation_between(c_new - a, target - a)
+    return R_a, R_b
+
+
+def _above_ground(d: torch.Tensor, start: torch.Tensor, bone: torch.Tensor) -> torch.Tensor:
+    """Direction d (..., 3), tilted up where needed so that a bone of the length of `bone` laid
+    from `start` along it ends on or above the ground; its heading is kept (or the bone's own,
+    for a d that points straight down)."""
+    d = rot.normalize(d)
+    lowest = (-start[..., 1] / bone.norm(dim=-1).clamp_min(1e-6)).clamp(-1.0, 1.0)  # smallest y of the unit direction
+    flat = d * torch.tensor([1.0, 0.0, 1.0], dtype=d.dtype)
+    flat = torch.where(flat.norm(dim=-1, keepdim=True) > 1e-6, flat, bone * torch.tensor([1.0, 0.0, 1.0], dtype=d.dtype))
+    flat = rot.normalize(flat) * (1 - lowest**2).clamp_min(0).sqrt()[..., None]
+    lifted = flat + lowest[..., None] * torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype)
+    return torch.where((d[..., 1] < lowest)[..., None], lifted, d)
+
+
+def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
+               follow: float | torch.Tensor | None = None) -> torch.Tensor:
+    """One body (DESIGN §5): the segment (B, N, 267) re-expressed as FK of its rotations on the
+    body's own bones (offsets (B, 22, 3)), so the joint locations it carries are exactly those of
+    the rotations exporters write. The pelvis location is the root; the rotations pose the body.
+    With `follow` (0..1, a number or one per body (B,)) each leg is then bent by two-bone IK so
+    that its ankle and foot move that fraction of the way to their processed locations (1: the
+    processed feet exactly; 0: the rotations' feet), and nowhere below the ground. None: no IK. Velocities are the backward
+    differences of the new locations, the first taken from x0."""
     u = unpack(seg)
     off = offsets.to(seg.dtype)[:, None]  # (B, 1, 22, 3)
-    children = [[c for c, p in enumerate(PARENTS) if p == j] for j in range(len(PARENTS))]
-    G: list[torch.Tensor] = []
-    local = []
-    for j, parent in enumerate(PARENTS):
-        pred = u.root_rot if parent < 0 else G[parent] @ u.local_rot[..., j - 1, :, :]
-        kids = children[j]
-        if kids:
-            src = rot.normalize(torch.stack([(pred @ off[..., c, :, None])[..., 0] for c in kids], -2))
-            dst = rot.normalize(torch.stack([u.joints[..., c, :] - u.joints[..., j, :] for c in kids], -2))
-            fix = rot.rotation_between(src[..., 0, :], dst[..., 0, :]) if len(kids) == 1 else rot.kabsch(src, dst)
-            pred = fix @ pred
-        G.append(pred)
-        if parent >= 0:
-            local.append(G[parent].transpose(-1, -2) @ pred)
-    return pack(u.root_pos, G[0], torch.stack(local, -3), u.joints, u.velocities)
+    root = u.joints[:, :, 0]
+    local = u.local_rot
+    if follow is not None:
+        G = _global_rotations(u.root_rot, u.local_rot)
+        P, _ = forward_kinematics(root, u.root_rot, u.local_rot, off)
+        floor = torch.tensor([0.0, FOOT_CLEARANCE], dtype=seg.dtype)  # lowest foot, ankle heights
+        follow = torch.as_tensor(follow, dtype=seg.dtype).expand(len(seg))[:, None, None, None]
+        for hip, knee, ankle, foot in _LEGS:
+            goal = P[..., [foot, ankle], :] + follow * (u.joints[..., [foot, ankle], :] - P[..., [foot, ankle], :])
+            goal[..., 1] = torch.maximum(goal[..., 1], floor)
+            R_a, R_b = two_bone_ik(P[..., hip, :], P[..., knee, :], P[..., ankle, :], goal[..., 1, :],
+                                   G[knee][..., :, 0])  # the knee's hinge: its own left axis (X)
+            G_ankle_local = G[knee].transpose(-1, -2) @ G[ankle]
+            G[hip] = R_a @ G[hip]
+            G[knee] = R_a @ R_b @ G[knee]
+            G[ankle] = G[knee] @ G_ankle_local
+            p_ankle = P[..., hip, :] + (G[hip] @ off[..., knee, :, None])[..., 0] + (G[knee] @ off[..., ankle, :, None])[..., 0]
+            bone = (G[ankle] @ off[..., foot, :, None])[..., 0]
+            G[ankle] = rot.rotation_between(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G[ankle]
+        local = list(local.unbind(-3))
+        for hip, knee, ankle, _ in _LEGS:
+            for j in (hip, knee, ankle):  # the foot joint keeps its local rotation
+                local[j - 1] = G[PARENTS[j]].transpose(-1, -2) @ G[j]
+        local = torch.stack(local, -3)
+    J, _ = forward_kinematics(root, u.root_rot, local, off)
+    return _pack_moving(x0, root, u.root_rot, local, J)
 
 
 def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) -> torch.Tensor:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from aiohttp import WSMsgType, web
 
-from ..data.motion_state import FPS
+from ..body.motion_state import FPS
 from . import protocol as P
 from .world import CommandError, World
 

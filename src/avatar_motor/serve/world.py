@@ -14,7 +14,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES
-from ..data.motion_state import FPS, unpack
+from ..body.motion_state import FPS, unpack
 from ..model.checkpoint import Motor
 from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig, standing_state
 from . import protocol as P

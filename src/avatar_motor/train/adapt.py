@@ -14,7 +14,7 @@ import torch
 from ..body.skeleton import ANKLES_AND_FEET, NUM_JOINTS, SHAPE_DIM
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
-from ..data.motion_state import SLICES
+from ..body.motion_state import SLICES
 from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint, save_adaptor
 from ..model.checkpoint import load_checkpoint
 from .losses import motion_loss

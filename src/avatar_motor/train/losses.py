@@ -11,7 +11,7 @@ import torch
 from ..body import rotations as rot
 from ..body.skeleton import forward_kinematics, rest_offsets
 from ..data.dataset import Normalizer
-from ..data.motion_state import FPS, SLICES, joints_of, velocities_of
+from ..body.motion_state import FPS, SLICES, joints_of, velocities_of
 
 
 def fk_joints(x: torch.Tensor, shapes: torch.Tensor) -> torch.Tensor:

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..body import rotations as rot
-from ..body.skeleton import JOINT_INDEX, NUM_JOINTS, forward_kinematics
+from . import rotations as rot
+from .skeleton import JOINT_INDEX, NUM_JOINTS, forward_kinematics
 
 STATE_DIM = 267
 FPS = 30.0
@@ -100,6 +100,20 @@ def states_from_motion(root_pos, root_rot, local_rot, offsets, fps: float = FPS)
     joints, _ = forward_kinematics(root_pos, root_rot, local_rot, offsets[..., None, :, :] if offsets.dim() > 2 else offsets)
     vel = finite_velocities(joints, fps)
     return pack(root_pos, root_rot, local_rot, joints, vel)
+
+
+def body_joints(x: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """The body a user takes away: FK of the root and joint rotations of states (..., 267) on the
+    bone offsets (..., 22, 3) of their shape. Exporters write these rotations; the runtime makes
+    the joint locations of every state it emits equal to this (`body_mismatch` measures it)."""
+    u = unpack(x)
+    return forward_kinematics(u.root_pos, u.root_rot, u.local_rot, offsets)[0]
+
+
+def body_mismatch(x: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Per joint, the distance (m) between the joint locations a state carries and body_joints:
+    (..., 22). Zero for a state that describes one body."""
+    return (joints_of(x) - body_joints(x, offsets)).norm(dim=-1)
 
 
 def facing_yaw(joints: torch.Tensor) -> torch.Tensor:
