@@ -41,3 +41,15 @@ def bandai():
 def _isolated_cache(tmp_path, monkeypatch):
     # never touch the user's motion cache from tests
     monkeypatch.setenv("AVATAR_MOTOR_CACHE", str(tmp_path / "cache"))
+
+
+@pytest.fixture(scope="session")
+def quirky_files(tmp_path_factory):
+    """The real-world skeleton fixtures (tests/fixture_tools.py QUIRKS) written to files with our
+    own writer, made at test time: the 120 fps CMU one alone is 330 KB of text."""
+    from avatar_motor.io.bvh import write_bvh
+    from .fixture_tools import QUIRKS, quirky_bvh
+    d = tmp_path_factory.mktemp("quirks")
+    for naming in QUIRKS:
+        write_bvh(d / f"mix_{naming}.bvh", quirky_bvh(naming), precision=5)
+    return d

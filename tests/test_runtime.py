@@ -89,6 +89,27 @@ def test_the_body_stage_makes_one_body_and_keeps_the_feet_above_ground():
     assert (out[..., [10, 11], :] - target[..., [10, 11], :]).norm(dim=-1).max() < 1e-3
 
 
+def test_a_pinned_foot_stays_where_it_stood_whatever_the_rotations_do():
+    off = rest_offsets(None, torch.float64).expand(2, 22, 3)
+    # a standing body whose rotations slowly spread its legs: both feet would slide apart
+    still = standing_state().double()[None, None].repeat(2, 16, 1)
+    u = unpack(still)
+    spread = torch.linspace(0.0, 0.2, 16, dtype=torch.float64)[None, :, None].expand(2, 16, 1)
+    local = u.local_rot.clone()
+    for hip, sgn in ((1, 1.0), (2, -1.0)):  # hips abduct about Z
+        local[:, :, hip - 1] = rot.axis_angle_to_matrix(torch.cat((0 * spread, 0 * spread, sgn * spread), -1)) @ local[:, :, hip - 1]
+    moved = pack(u.root_pos, u.root_rot, local, u.joints, u.velocities)
+    x0 = still[:, 0]
+    free = joints_of(solve_body(x0, moved[:, 1:], off, 0.0))
+    pinned = joints_of(solve_body(x0, moved[:, 1:], off, 0.0, pin=True))
+    feet = [10, 11]
+    planted = joints_of(x0)[:, feet]
+    slide = lambda J: float(((J[:, :, feet] - planted[:, None]) * torch.tensor([1.0, 0, 1.0], dtype=torch.float64)).norm(dim=-1).max())  # noqa: E731
+    low = bool((joints_of(x0)[:, feet, 1] < 0.06).all())
+    assert low and slide(free) > 0.05 and slide(pinned) < 1e-3
+    assert float(body_mismatch(solve_body(x0, moved[:, 1:], off, 0.0, pin=True), off[:, None]).max()) < 1e-9
+
+
 def test_two_bone_ik_reaches_keeps_bones_and_bends_a_straight_knee_forward():
     a = torch.zeros(3, 3, dtype=torch.float64)
     b = torch.tensor([[0.0, -0.4, 0.0], [0.0, -0.4, 0.05], [0.0, -0.4, 0.05]], dtype=torch.float64)
@@ -158,6 +179,59 @@ def test_command_takes_effect_at_the_next_frame(tmp_path):
     assert float((joints_of(nxt)[0] - joints_of(shown)[0]).norm()) < 0.2
 
 
+def _shaped_crowd(motor, seed):
+    crowd = Crowd(motor, seed=seed)
+    shapes = torch.randn(2, SHAPE_DIM, generator=torch.Generator().manual_seed(4))
+    ids = [crowd.spawn(shape=shapes[k], position=(2.0 * k, 0.0)) for k in range(2)]
+    return crowd, ids
+
+
+def test_reset_stands_the_avatar_up_where_it_is_with_no_goal(motor):
+    crowd, (i, j) = _shaped_crowd(motor, 1)
+    crowd.set_goal(i, (1.0, 0.5))
+    crowd.step_segment()
+    crowd.push(i, "head", (0.0, 0.0, 3.0))
+    crowd.refill(1)
+    before, other = crowd.state(i).clone(), crowd.state(j).clone()
+    crowd.reset(i)
+    x = crowd.state(i)
+    assert torch.equal(x, standing_state(crowd.shape(i), (float(before[0]), float(before[2]))))
+    assert float(body_mismatch(x.double(), rest_offsets(crowd.shape(i), torch.float64)).max()) < 1e-5
+    a = crowd.avatars[i]
+    assert crowd.goal_velocity(i) is None and a.facing_goal is None and a.pending_velocity is None and a.queue == []
+    assert torch.equal(crowd.state(j), other) and len(crowd.avatars[j].queue) == 15  # the others go on
+    with pytest.raises(KeyError, match="no avatar 9"):
+        crowd.reset(9)
+
+
+def test_reseed_continues_as_a_crowd_freshly_seeded_so(motor):
+    crowd, ids = _shaped_crowd(motor, 1)
+    crowd.set_goal(ids[1], (1.0, 0.0))
+    crowd.step_segment()  # the noise streams have moved on
+    crowd.reseed(7)
+    fresh = Crowd(motor, seed=7)
+    assert [fresh.spawn(crowd.state(i), crowd.shape(i)) for i in ids] == ids
+    fresh.set_goal(ids[1], (1.0, 0.0))
+    for _ in range(2):
+        a, b = crowd.step_segment(), fresh.step_segment()
+        assert all(torch.equal(a[i], b[i]) for i in ids)
+    assert crowd.seed == 7 and crowd.spawn() == fresh.spawn() == 2
+    assert torch.equal(crowd.step_segment()[2], fresh.step_segment()[2])  # later spawns use the new seed
+
+
+def test_advance_shows_one_queued_frame_and_holds_the_stalled(motor):
+    crowd, (i, j) = _shaped_crowd(motor, 1)
+    assert crowd.ids() == [i, j] and len(crowd) == 2 and j in crowd and 5 not in crowd
+    crowd.refill(1)
+    assert not crowd.needs_frames(15) and crowd.needs_frames(16)
+    crowd.interrupt(j)
+    head, held = crowd.avatars[i].queue[0], crowd.state(j)
+    shown, stalled = crowd.advance()
+    assert shown[i] is head and crowd.state(i) is head and len(crowd.avatars[i].queue) == 14
+    assert stalled == [j] and shown[j] is held and crowd.state(j) is held
+    assert crowd.needs_frames(1)
+
+
 @pytest.mark.parametrize("B", [1, 4])
 def test_guidance_gradients_match_autograd(B):
     g = torch.Generator().manual_seed(0)
@@ -211,7 +285,7 @@ def test_generate_files_reimport(motor, tmp_path, ext):
         from avatar_motor.io.export import read_npz_states  # noqa: F401
     elif ext == "npz":
         from avatar_motor.io.export import read_npz_states
-        X, fps = read_npz_states(out)
+        X, fps, _ = read_npz_states(out)
         assert X.shape == (30, 267) and fps == 30
     else:
         from avatar_motor.io.gltf import read_glb

@@ -6,14 +6,19 @@ import socket
 import threading
 import time
 
+import numpy as np
 import pytest
+import torch
 
+from avatar_motor.body.motion_state import body_mismatch
+from avatar_motor.body.rotations import quat_to_matrix
+from avatar_motor.body.skeleton import SHAPE_DIM, forward_kinematics, rest_offsets
 from avatar_motor.client import Client
 from avatar_motor.runtime.crowd import RuntimeConfig
 from avatar_motor.serve.server import Server
 from avatar_motor.serve.world import World
 
-from .conftest_models import shipped_or_tiny
+from .conftest_models import SHIPPED, shipped_or_tiny, tiny_motor
 
 
 def free_port() -> int:
@@ -195,3 +200,67 @@ def test_target_command_drives_a_served_reaching_adaptor_at_its_scale(tmp_path):
         validate_command({"type": "target", "avatar": i, "position": [2.0, 1.0], "scale": 11})
     world.apply(validate_command({"type": "target", "avatar": i, "position": None}))
     assert a.target is None
+
+
+SHAPE = [1.5, -1.0, 0.8, -0.5, 1.2, -1.4]  # a tall, short-legged, broad body: far from the average one
+
+
+def fk_error(positions, rotations, shape) -> float:
+    """Metres between streamed joint positions (22, 3) and forward kinematics of the streamed
+    quaternions (22, 4) x, y, z, w on the bones of `shape`."""
+    J = torch.from_numpy(np.array(positions, dtype=np.float64))
+    R = quat_to_matrix(torch.from_numpy(np.array(rotations, dtype=np.float64))[:, [3, 0, 1, 2]])  # w, x, y, z
+    fk, _ = forward_kinematics(J[0], R[0], R[1:], rest_offsets(shape, torch.float64))
+    return float((fk - J).norm(dim=-1).max())
+
+
+def test_streamed_frames_are_one_body_on_each_avatars_bones(tmp_path):
+    world = World(shipped_or_tiny(tmp_path), seed=2)
+    r = Running(world)
+    try:
+        with Client(r.url, format="json") as cj, Client(r.url) as cb:
+            ids = [cj.command({"type": "spawn", "position": [0.0, 0.0], "shape": SHAPE})["avatar"],
+                   cj.command({"type": "spawn", "position": [2.0, 0.0]})["avatar"]]
+            shapes = {ids[0]: torch.tensor(SHAPE), ids[1]: None}
+            for cmd in ({"type": "push", "avatar": ids[0], "joint": "head", "velocity": [0.0, 0.0, 2.0]},
+                        {"type": "goal", "avatar": ids[0], "velocity": [0.0, 1.0]},
+                        {"type": "goal", "avatar": ids[1], "velocity": [-1.0, 0.0]}):
+                assert cj.command(cmd)["ok"]
+            cj.drain(), cb.drain()
+            json_frames, binary_frames = list(cj.frames(60)), list(cb.frames(60))
+    finally:
+        r.stop()
+    worst = {"json": 0.0, "binary": 0.0}
+    for fmt, frames in (("json", json_frames), ("binary", binary_frames)):
+        for f in frames:
+            avs = {a["id"]: a for a in f["avatars"]} if fmt == "json" else f["avatars"]
+            assert set(avs) == set(ids)
+            for i in ids:
+                worst[fmt] = max(worst[fmt], fk_error(avs[i]["positions"], avs[i]["rotations"], shapes[i]))
+    print(f"streamed FK mismatch: {worst}")
+    assert worst["json"] < 1e-3 and worst["binary"] < 1e-3
+    # the check sees the bones: the shaped avatar is not the average body
+    shaped = next(a for a in json_frames[-1]["avatars"] if a["id"] == ids[0])
+    assert fk_error(shaped["positions"], shaped["rotations"], None) > 0.01
+
+
+def test_headless_export_is_one_body_on_the_avatars_bones(tmp_path):
+    from avatar_motor.cli import main
+    model = SHIPPED
+    if not (SHIPPED / "model.safetensors").exists():
+        tiny_motor(tmp_path)
+        model = tmp_path / "tiny"
+    script = tmp_path / "events.json"
+    script.write_text(json.dumps({"events": [
+        {"frame": 0, "cmd": {"type": "spawn", "position": [1.0, 0.0], "shape": SHAPE}},
+        {"frame": 5, "cmd": {"type": "push", "avatar": 1, "joint": "left_wrist", "velocity": [0.0, 2.0, 1.0]}},
+        {"frame": 10, "cmd": {"type": "goal", "avatar": 1, "velocity": [1.0, 0.5]}},
+        {"frame": 20, "cmd": {"type": "impulse", "avatar": 0, "preset": "left_kick"}}]}))
+    out = tmp_path / "out"
+    assert main(["serve", "--model", str(model), "--headless", "--seconds", "2", "--script", str(script),
+                 "--export", str(out)]) == 0
+    for i, shape in ((0, None), (1, torch.tensor(SHAPE))):
+        with np.load(out / f"avatar{i}.npz") as z:
+            states, betas = torch.from_numpy(z["states"]).double(), torch.from_numpy(z["betas"])
+        assert len(states) == 60 and torch.equal(betas, shape if shape is not None else torch.zeros(SHAPE_DIM))
+        assert float(body_mismatch(states, rest_offsets(shape, torch.float64)).max()) < 1e-3

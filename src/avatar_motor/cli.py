@@ -168,13 +168,15 @@ def _parse_goal(text: str):
     return (vx, vz)
 
 
-def load_init(spec: str, shape=None):
-    """'FILE[:FRAME]' (BVH of any known skeleton, or an avatar-motor .npz) -> world state (267,)."""
+def load_init(spec: str):
+    """'FILE[:FRAME]' (BVH of any known skeleton, or an avatar-motor .npz) -> (world state (267,),
+    body shape (SHAPE_DIM,)). A BVH is retargeted onto the body shape estimated from its own
+    skeleton, so the avatar keeps the source character's proportions; an npz carries its shape."""
     import torch
 
     from .body import rotations as rot
-    from .body.skeleton import rest_offsets
     from .body.motion_state import states_from_motion
+    from .body.skeleton import rest_offsets
     from .data.retarget import resample, retarget
     from .io.bvh import read_bvh
     from .io.export import read_npz_states
@@ -186,14 +188,15 @@ def load_init(spec: str, shape=None):
     if not Path(path).exists():
         raise FileNotFoundError(f"--init {path}: no such file")
     if path.lower().endswith(".npz"):
-        states, _ = read_npz_states(path)
+        states, _, shape = read_npz_states(path)
     else:
-        r = resample(retarget(read_bvh(path)), 30.0)
+        r = resample(retarget(read_bvh(path), body="source"), 30.0)
+        shape = torch.tensor(r.info["shape"])
         R = rot.quat_to_matrix(torch.from_numpy(r.quats).double())
         states = states_from_motion(torch.from_numpy(r.root_pos).double(), R[:, 0], R[:, 1:], rest_offsets(shape, torch.float64)).float()
     if not 0 <= frame < len(states):
-        raise ValueError(f"--init {spec}: frame {frame} is outside 0..{len(states) - 1}")
-    return states[frame]
+        raise ValueError(f"--init {spec}: frame {frame} is outside 0..{len(states) - 1} (frames of the file at 30 fps)")
+    return states[frame], shape
 
 
 def _load_adaptor(a, motor):
@@ -235,10 +238,10 @@ def _generate(a) -> int:
     labels = _timed_args(a.label, "--label", lambda v: None if v.lower() in ("none", "free") else v)
     targets = _timed_args(a.target, "--target", _parse_xz)
     motor = load_checkpoint(a.model)
-    init = load_init(a.init) if a.init else None
+    init, shape = load_init(a.init) if a.init else (None, None)
     crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptor(a, motor))
-    i = crowd.spawn(init)
-    frames = [crowd.avatars[i].state]
+    i = crowd.spawn(init, shape)
+    frames = [crowd.state(i)]
     n = int(round(a.seconds * 30))
     for f in range(1, n):
         t = f / 30.0
@@ -252,7 +255,7 @@ def _generate(a) -> int:
             crowd.set_target(i, targets.pop(0)[1], a.adaptor_scale)
         frames.append(crowd.next_frames()[i])
     X = torch.stack(frames)
-    write_motion(out, X, meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
+    write_motion(out, X, crowd.shape(i), meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
     print(f"{out}: {len(X)} frames ({len(X) / 30:.1f} s) from {motor.name}")
     return 0
 
@@ -305,11 +308,11 @@ def _serve_headless(a, world) -> int:
     world.run_offline(frames, script.get("events", []))
     out = Path(a.export or "out/headless")
     out.mkdir(parents=True, exist_ok=True)
-    for i in sorted(world.crowd.avatars):
+    for i in world.crowd.ids():
         X = world.recording(i)
         for ext in ("bvh", "npz"):
-            write_motion(out / f"avatar{i}.{ext}", X, world.crowd.avatars[i].shape, meta={"seed": a.seed, "script": a.script})
-    print(f"{out}: {frames} frames for {len(world.crowd.avatars)} avatar(s), seed {a.seed}")
+            write_motion(out / f"avatar{i}.{ext}", X, world.crowd.shape(i), meta={"seed": a.seed, "script": a.script})
+    print(f"{out}: {frames} frames for {len(world.crowd)} avatar(s), seed {a.seed}")
     return 0
 
 

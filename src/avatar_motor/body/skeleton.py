@@ -66,7 +66,6 @@ _GROUPS = {  # which joints' offsets each proportion parameter lengthens
     2: ["spine1", "spine2", "spine3", "neck", "head"],
     3: ["left_elbow", "right_elbow", "left_wrist", "right_wrist"],
 }
-_STEP = {1: 0.05, 2: 0.05, 3: 0.05}
 
 
 def rest_offsets(shape: torch.Tensor | None = None, dtype=torch.float32) -> torch.Tensor:
@@ -80,15 +79,13 @@ def rest_offsets(shape: torch.Tensor | None = None, dtype=torch.float32) -> torc
     scale = torch.ones(*shape.shape[:-1], NUM_JOINTS, 3, dtype=dtype)
     for k, names in _GROUPS.items():
         idx = [JOINT_INDEX[n] for n in names]
-        scale[..., idx, :] = scale[..., idx, :] * (1 + _STEP[k] * shape[..., k, None, None])
+        scale[..., idx, :] = scale[..., idx, :] * (1 + STEP[SHAPE_NAMES[k]] * shape[..., k, None, None])
     for k, names in ((4, ["left_collar", "right_collar", "left_shoulder", "right_shoulder"]), (5, ["left_hip", "right_hip"])):
         idx = [JOINT_INDEX[n] for n in names]
-        scale[..., idx, 0] = scale[..., idx, 0] * (1 + 0.08 * shape[..., k, None])
+        scale[..., idx, 0] = scale[..., idx, 0] * (1 + STEP[SHAPE_NAMES[k]] * shape[..., k, None])
     off = base * scale
     # stature: uniform scale so that standing height changes by 10 cm per unit
-    scaled = standing_height(None) - FOOT_CLEARANCE - SKULL  # the part of the stature made of bones
-    off = off * (1 + 0.10 * shape[..., 0, None, None] / scaled)
-    return off
+    return off * (1 + STEP["stature"] * shape[..., 0, None, None])
 
 
 def pelvis_height(offsets: torch.Tensor) -> torch.Tensor:
@@ -103,6 +100,12 @@ def standing_height(shape: torch.Tensor | None) -> float | torch.Tensor:
     off = TEMPLATE_OFFSETS if shape is None else rest_offsets(shape, torch.float64)
     h = pelvis_height(off) + off[..., [3, 6, 9, 12, 15], 1].sum(-1) + SKULL
     return float(h) if shape is None else h
+
+
+# relative change of the lengths each shape parameter scales, per unit; stature scales every
+# bone so that the standing height changes by 10 cm (the skull and foot clearance stay)
+STEP = {"stature": 0.10 / (standing_height(None) - FOOT_CLEARANCE - SKULL), "leg_length": 0.05, "torso_length": 0.05,
+        "arm_length": 0.05, "shoulder_width": 0.08, "hip_width": 0.08}
 
 
 def rest_positions(offsets: torch.Tensor) -> torch.Tensor:

@@ -263,7 +263,15 @@ def summarize(cache: MotionCache) -> dict:
             labels.setdefault(k, {})
             labels[k][v] = labels[k].get(v, 0) + 1
     frames = int(cache.clip_len.sum())
-    return {"clips": len(cache.clips), "frames": frames, "minutes": frames / 30.0 / 60.0, "labels": labels}
+    namings: dict[str, int] = {}
+    ignored: dict[str, set] = {}  # per naming, the source joints no canonical joint takes
+    for c in cache.clips:
+        info = c.get("info", {})
+        naming = info.get("skeleton", "?")
+        namings[naming] = namings.get(naming, 0) + 1
+        ignored.setdefault(naming, set()).update(info.get("ignored", []))
+    return {"clips": len(cache.clips), "frames": frames, "minutes": frames / 30.0 / 60.0, "labels": labels,
+            "namings": namings, "ignored": ignored}
 
 
 def format_summary(s: dict) -> str:
@@ -274,6 +282,12 @@ def format_summary(s: dict) -> str:
     if "seconds" in s:
         head += f", imported in {s['seconds']:.1f} s"
     lines = [head]
+    if s.get("namings"):
+        lines.append("  skeleton naming detected: " + ", ".join(f"{n} ({v} clips)" for n, v in sorted(s["namings"].items())))
+    for naming, names in sorted((s.get("ignored") or {}).items()):
+        if names:
+            names = sorted(names)
+            lines.append(f"  {naming}: source joints ignored ({len(names)}): " + ", ".join(names[:40]) + (" ..." if len(names) > 40 else ""))
     for k, counts in s["labels"].items():
         lines.append(f"  {k}: " + ", ".join(f"{v} {n}" for v, n in sorted(counts.items(), key=lambda kv: -kv[1])))
     sk = s.get("skipped", [])

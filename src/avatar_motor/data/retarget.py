@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from ..body import rotations as rot
-from ..body.skeleton import (ANKLES_AND_FEET, FOOT_CLEARANCE, JOINT_NAMES, NUM_JOINTS, PARENTS, forward_kinematics,
-                             rest_offsets)
+from ..body.skeleton import (ANKLES_AND_FEET, FOOT_CLEARANCE, JOINT_INDEX, JOINT_NAMES, NUM_JOINTS, PARENTS, SHAPE_DIM,
+                             STEP, forward_kinematics, rest_offsets, rest_positions)
 from ..io.bvh import BVH, BVHError
 
 # canonical joint -> source joint name; a pair means "between these two" (slerped)
@@ -63,6 +63,13 @@ NAMINGS: dict[str, dict[str, str | tuple[str, str]]] = {
         "{side}_hip": "{S}UpLeg", "{side}_knee": "{S}Leg", "{side}_ankle": "{S}Foot", "{side}_foot": "{S}ToeBase",
         "{side}_collar": "{S}Shoulder", "{side}_shoulder": "{S}Arm", "{side}_elbow": "{S}ForeArm", "{side}_wrist": "{S}Hand",
     }),
+    # Unreal Engine 5 mannequin (five spine joints, two neck joints) and UE4 (three spine joints)
+    "ue5": (_UE := _lr({
+        "pelvis": "pelvis", "spine1": "spine_01", "spine2": "spine_03", "spine3": "spine_05", "neck": "neck_01", "head": "head",
+        "{side}_hip": "thigh_{s}", "{side}_knee": "calf_{s}", "{side}_ankle": "foot_{s}", "{side}_foot": "ball_{s}",
+        "{side}_collar": "clavicle_{s}", "{side}_shoulder": "upperarm_{s}", "{side}_elbow": "lowerarm_{s}", "{side}_wrist": "hand_{s}",
+    })),
+    "ue4": {**_UE, "spine2": "spine_02", "spine3": "spine_03"},
     "smpl": {n: n for n in JOINT_NAMES},
     "smpl_short": _lr({
         "pelvis": "Pelvis", "spine1": "Spine1", "spine2": "Spine2", "spine3": "Spine3", "neck": "Neck", "head": "Head",
@@ -76,7 +83,13 @@ _PREFIX = re.compile(r"^(mixamorig\d*[:_]|.*:)")
 # direction of a leaf joint's (virtual) child bone in the canonical rest pose
 _LEAF_DIR = {"head": (0.0, 1.0, 0.0), "left_wrist": (1.0, 0.0, 0.0), "right_wrist": (-1.0, 0.0, 0.0),
              "left_foot": (0.0, 0.0, 1.0), "right_foot": (0.0, 0.0, 1.0)}
-UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+# "cmu": the unit of the CMU database's common BVH conversion, the ASF's (1/0.45) inch
+UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048, "cmu": 0.0254 / 0.45}
+ZERO_BONE = 1e-4  # metres: a source bone shorter than this has no direction
+# which child of a leaf joint (a hand's fingers, props) gives its direction: the best-ranked ones,
+# averaged; a thumb points sideways and a prop anywhere
+_LEAF_RANK = ((re.compile(r"middle", re.I), 0), (re.compile(r"thumb", re.I), 3),
+              (re.compile(r"index|ring|pinky|finger|hand|toe|end|top", re.I), 1))
 
 
 def strip_prefix(name: str) -> str:
@@ -146,6 +159,73 @@ def _rest_positions(b: BVH) -> np.ndarray:
     for j, p in enumerate(b.parents):
         P[j] = t[j] if p < 0 else P[p] + t[j]
     return P
+
+
+def _leaf_vector(b: BVH, P_w: torch.Tensor, G_w: torch.Tensor, A: np.ndarray, scale: float, j: int) -> torch.Tensor | None:
+    """The bone that leaves source joint j, a leaf of the canonical body, in j's own frame
+    (metres): its best-ranked children (_LEAF_RANK; a zero-length child is followed to its own
+    first child, or End Site), averaged over them and over the frames; else j's End Site; None if
+    nothing has a length. P_w, G_w: world joint positions and rotations per frame."""
+    def ranked(k: int) -> int:
+        name = strip_prefix(b.names[k])
+        return next((r for pat, r in _LEAF_RANK if pat.search(name)), 2)
+
+    def local(v: torch.Tensor) -> torch.Tensor:  # world vectors per frame -> j's frame, averaged
+        return (G_w[:, j].transpose(-1, -2) @ v[..., None])[..., 0].mean(0)
+
+    def end(k: int) -> torch.Tensor | None:
+        if k in b.end_sites and np.linalg.norm(b.end_sites[k]) * scale >= ZERO_BONE:
+            return G_w[:, k] @ torch.from_numpy(A @ b.end_sites[k] * scale)
+        return None
+
+    def reach(k: int) -> torch.Tensor | None:
+        while True:
+            v = local(P_w[:, k] - P_w[:, j])
+            if v.norm() >= ZERO_BONE:
+                return v
+            kids = [c for c, p in enumerate(b.parents) if p == k]
+            if not kids:
+                e = end(k)
+                return None if e is None else local(P_w[:, k] - P_w[:, j] + e)
+            k = kids[0]
+
+    vecs = [(ranked(k), reach(k)) for k, p in enumerate(b.parents) if p == j]
+    vecs = [(r, v) for r, v in vecs if v is not None]
+    if vecs:
+        best = min(r for r, _ in vecs)
+        return torch.stack([v for r, v in vecs if r == best]).mean(0)
+    e = end(j)
+    return None if e is None else local(e)
+
+
+def estimate_shape(P: torch.Tensor, m: "Mapping") -> torch.Tensor:
+    """Body-shape parameters (SHAPE_DIM,) of a source skeleton from its joint positions in metres,
+    (F, J, 3) over the frames of its motion or (J, 3) for one pose: the overall size from leg plus trunk length (stature), then legs, trunk,
+    arms, shoulder and hip width as proportions of that size; each clamped to +-2.5 like the
+    shapes the model trained with. Each length is a sum over the canonical bones of the distance
+    between their mapped source joints (median over frames): unlike a straight line across
+    several bones it does not depend on the pose, and joints the source inserts along one of our
+    bones (UE's spine_02) do not shorten it as they would in the file's rest pose."""
+    j = {k: v[0] for k, v in m.joints.items()}
+
+    def lengths(P, idx) -> torch.Tensor:
+        def chain(*names):  # summed bone lengths between consecutive mapped joints
+            return sum((P[..., idx[a], :] - P[..., idx[c], :]).norm(dim=-1).median() for a, c in zip(names[:-1], names[1:]))
+        leg = sum(chain(f"{s}_hip", f"{s}_knee", f"{s}_ankle") for s in ("left", "right")) / 2
+        trunk = chain("pelvis", "spine1", "spine2", "spine3", "neck", "head")
+        arm = sum(chain(f"{s}_shoulder", f"{s}_elbow", f"{s}_wrist") for s in ("left", "right")) / 2
+        # widths straight across: ours scale only the sideways part of those bones
+        return torch.stack((leg + trunk, leg, trunk, arm, chain("left_shoulder", "right_shoulder"), chain("left_hip", "right_hip")))
+
+    src = lengths(P.double(), j)
+    can = lengths(rest_positions(rest_offsets(None, torch.float64)), JOINT_INDEX)
+    size = src[0] / can[0]
+    shape = torch.zeros(SHAPE_DIM, dtype=torch.float64)
+    # stature: rest_offsets scales every bone by 1 + 0.10 * stature / (bone part of the stature)
+    shape[0] = (size - 1) / STEP["stature"]
+    shape[1:] = (src[1:] / (can[1:] * size) - 1) / torch.tensor([STEP[n] for n in ("leg_length", "torso_length", "arm_length",
+                                                                                    "shoulder_width", "hip_width")])
+    return shape.clamp(-2.5, 2.5).float()
 
 
 def _chain_length(P_rest: np.ndarray, a: int, b_: int) -> float:
@@ -237,11 +317,17 @@ def _zero_mean_twist(G: torch.Tensor, C: torch.Tensor, parent: torch.Tensor, bon
     return rot.rotation_between(C_new @ bone, C @ bone) @ C_new  # keep the bone exactly on its source
 
 
-def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, ground: str = "auto") -> Retargeted:
+def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, ground: str = "auto",
+             body: str = "average") -> Retargeted:
     """ground="auto" lifts the clip so its feet rest on the ground (skeletons differ in where their
-    toe joint sits); "keep" keeps the file's own heights (files this project wrote)."""
+    toe joint sits); "keep" keeps the file's own heights (files this project wrote). body="average"
+    puts the motion on the average body (what the motion cache holds: training draws shapes of its
+    own); "source" on the body shape estimated from the file's skeleton (`estimate_shape`), so an
+    avatar started from the file keeps its character's proportions."""
     if ground not in ("auto", "keep"):
         raise ValueError(f"ground must be 'auto' or 'keep', got {ground!r}")
+    if body not in ("average", "source"):
+        raise ValueError(f"body must be 'average' or 'source', got {body!r}")
     m = detect_mapping(b, mapping)
     unit_name, scale = (unit, UNITS[unit]) if unit else detect_units(b, m)
     P_src, G_src = b.global_transforms()
@@ -259,8 +345,31 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
     def rest_pos(idx: tuple[int, ...]) -> torch.Tensor:
         return P_rest[list(idx)].mean(0)
 
-    can_off = rest_offsets(None, torch.float64)
+    shape = estimate_shape(P_w, m) if body == "source" else None
+    can_off = rest_offsets(shape, torch.float64)
     children = {j: [k for k in range(NUM_JOINTS) if PARENTS[k] == j] for j in range(NUM_JOINTS)}
+
+    def bone(j: tuple[int, ...], k: tuple[int, ...]) -> torch.Tensor:
+        """The source bone from mapped joint(s) j to k in j's own frame (= its rest direction in
+        the world, where every rotation is zero). When unmapped joints stand between them (CMU's
+        LHipJoint, UE's spine_02, a finger base), their rotations turn the bone away from the rest
+        pose, so it is measured on the motion itself: averaged over the frames."""
+        if len(j) > 1 or len(k) > 1 or b.parents[k[0]] == j[0]:
+            return rest_pos(k) - rest_pos(j)
+        return (G_w[:, j[0]].transpose(-1, -2) @ (P_w[:, k[0]] - P_w[:, j[0]])[..., None])[..., 0].mean(0)
+
+    def aim(j: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The canonical and source vectors of the bone from j toward its child k. A source bone
+        of zero length (CMU's LowerBack, LHipJoint, Neck and LeftShoulder sit on their parents)
+        fixes no direction: the chain is followed to the next joint with length."""
+        can, cur = can_off[k].clone(), k
+        src = bone(m.joints[JOINT_NAMES[j]], m.joints[JOINT_NAMES[k]])
+        while src.norm() < ZERO_BONE and children[cur]:
+            cur = children[cur][0]
+            can = can + can_off[cur]
+            src = bone(m.joints[JOINT_NAMES[j]], m.joints[JOINT_NAMES[cur]])
+        return can, src
+
     C = [None] * NUM_JOINTS
     bone_dir: list[torch.Tensor | None] = [None] * NUM_JOINTS
     inherit: set[int] = set()
@@ -269,20 +378,15 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
         idx = m.joints[name]
         kids = children[j]
         if kids:
-            can_dirs = torch.stack([can_off[k] for k in kids])
-            src_dirs = torch.stack([rest_pos(m.joints[JOINT_NAMES[k]]) - rest_pos(idx) for k in kids])
-        else:  # leaf: use the source joint's own child or End Site if it has a length
-            src_kids = [k for k, p in enumerate(b.parents) if p == idx[-1]]
-            v = None
-            if src_kids:
-                v = P_rest[src_kids[0]] - P_rest[idx[-1]]
-            elif idx[-1] in b.end_sites:
-                v = torch.from_numpy(A @ b.end_sites[idx[-1]] * scale)
-            if v is None or v.norm() < 1e-6:
+            pairs = [aim(j, k) for k in kids]
+            can_dirs, src_dirs = torch.stack([c for c, _ in pairs]), torch.stack([v for _, v in pairs])
+        else:  # leaf: the source joint's own child bone (a finger, the toe's end) or End Site, if it has a length
+            v = _leaf_vector(b, P_w, G_w, A, scale, idx[-1])
+            if v is None:
                 inherit.add(j)  # no bone to aim: the leaf keeps its parent's (final) correction
                 continue
             can_dirs, src_dirs = torch.tensor([_LEAF_DIR[name]], dtype=torch.float64), v[None]
-        if (src_dirs.norm(dim=-1) < 1e-9).any():
+        if (src_dirs.norm(dim=-1) < ZERO_BONE).any():
             raise BVHError(f"{b.source}: joints mapped to {name} and its children coincide; the skeleton is degenerate. "
                            "Check the mapping")
         can_dirs, src_dirs = rot.normalize(can_dirs), rot.normalize(src_dirs)
@@ -316,8 +420,10 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
     lift = FOOT_CLEARANCE - float(torch.quantile(feet, 0.1)) if ground == "auto" else 0.0
     root[:, 1] += lift
     quats = torch.cat((rot.matrix_to_quat(glob[:, :1]), rot.matrix_to_quat(local)), 1)
+    used = {i for v in m.joints.values() for i in v}
     info = {"skeleton": m.name, "unit": unit_name, "scale_to_metres": scale, "leg_ratio": ratio, "lift_m": lift,
-            "source_fps": b.fps}
+            "source_fps": b.fps, "ignored": [n for i, n in enumerate(b.names) if i not in used],
+            "shape": [float(v) for v in (shape if shape is not None else torch.zeros(SHAPE_DIM))]}
     return Retargeted(root.numpy().astype(np.float32), quats.numpy().astype(np.float32), b.fps, info)
 
 

@@ -322,19 +322,23 @@ def write_bvh(path: str | Path, b: BVH, precision: int = 6) -> None:
 
 def bvh_from_rotations(names: list[str], parents: list[int], offsets: np.ndarray, root_pos: np.ndarray,
                        local_rot: torch.Tensor, frame_time: float, order: str = "ZXY",
-                       end_sites: dict[int, np.ndarray] | None = None) -> BVH:
+                       end_sites: dict[int, np.ndarray] | None = None,
+                       positions: dict[int, np.ndarray] | None = None) -> BVH:
     """Build a BVH with root position channels + `order` rotation channels on every joint.
 
-    root_pos (F, 3) in file units; local_rot (F, J, 3, 3) including the root's rotation.
-    """
+    root_pos (F, 3) in file units; local_rot (F, J, 3, 3) including the root's rotation;
+    positions: per-frame local translations (F, 3) of other joints that get position channels
+    (e.g. a pelvis below a ground-level root joint)."""
     ang = torch.rad2deg(rot.matrix_to_euler(local_rot.double(), order)).numpy()
     F, J = ang.shape[:2]
+    positions = {j: v for j, v in (positions or {}).items() if parents[j] >= 0}
+    positions.update({j: root_pos for j, p in enumerate(parents) if p < 0})
     rch = [f"{a}rotation" for a in order]
-    channels = [list(POSITION_CHANNELS) + rch if p < 0 else list(rch) for p in parents]
+    channels = [list(POSITION_CHANNELS) + rch if j in positions else list(rch) for j in range(J)]
     cols = []
     for j in range(J):
-        if parents[j] < 0:
-            cols.append(root_pos)
+        if j in positions:
+            cols.append(positions[j])
         cols.append(ang[:, j])
     return BVH(list(names), list(parents), np.asarray(offsets, np.float64), channels,
                np.concatenate(cols, 1), frame_time, dict(end_sites or {}))

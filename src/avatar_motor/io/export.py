@@ -75,11 +75,13 @@ def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | N
     return path
 
 
-def read_npz_states(path: str | Path) -> tuple[torch.Tensor, float]:
+def read_npz_states(path: str | Path) -> tuple[torch.Tensor, float, torch.Tensor]:
+    """(states (T, 267), fps, body shape (SHAPE_DIM,)) of an npz this project wrote."""
     with np.load(path, allow_pickle=False) as z:
         if "states" not in z:
             raise ValueError(f"{path}: no 'states' array; this npz was not written by avatar-motor")
-        return torch.from_numpy(z["states"]).float(), float(z["fps"])
+        betas = z["betas"] if "betas" in z else np.zeros(len(SHAPE_NAMES))
+        return torch.from_numpy(z["states"]).float(), float(z["fps"]), torch.from_numpy(betas).float()
 
 
 assert NUM_JOINTS == len(JOINT_NAMES)

@@ -51,6 +51,7 @@ class RuntimeConfig:
     # post-processing stages by name, in order (runtime/stages.py); a body stage (leg_ik or fk)
     # always ends the list, so every frame that leaves the runtime is one body
     stages: tuple[str, ...] = DEFAULT_STAGES
+    pin_feet: bool = True  # leg_ik holds a planted foot where it stood the frame before
     inertia_halflife: float = 0.2  # 0.1 measured jerkier at the joins and more skating
     smooth_sigma: float = 1.25  # temporal low-pass of each segment, frames (0 = off); our addition
     still_sigma: float = 3.0  # the low-pass of a nearly still body (speed-adaptive, One-Euro-like)
@@ -189,6 +190,47 @@ class Crowd:
             raise KeyError(f"no avatar {i}; avatars are {sorted(self.avatars)}")
         return self.avatars[i]
 
+    def __len__(self) -> int:
+        return len(self.avatars)
+
+    def __contains__(self, i) -> bool:
+        return i in self.avatars
+
+    def ids(self) -> list[int]:
+        """The avatars' ids, ascending (= spawn order)."""
+        return sorted(self.avatars)
+
+    def state(self, i: int) -> torch.Tensor:
+        """The (267,) world state avatar i shows now (not a copy: do not write to it)."""
+        return self._get(i).state
+
+    def shape(self, i: int) -> torch.Tensor:
+        """Avatar i's (SHAPE_DIM,) body shape (not a copy), e.g. to export its motion on its bones."""
+        return self._get(i).shape
+
+    def goal_velocity(self, i: int) -> torch.Tensor | None:
+        """Avatar i's goal velocity, (3,) world m/s, or None: lets a caller re-aim only on a real change."""
+        return self._get(i).v_goal
+
+    def needs_frames(self, min_frames: int) -> bool:
+        """Whether some avatar has fewer than min_frames queued: the ones `prepare` would serve."""
+        return any(len(a.queue) < min_frames for a in self.avatars.values())
+
+    def reset(self, i: int) -> None:
+        """Stand avatar i up where it is (pelvis x, z; facing +Z) with its goals and pending impulses
+        released, from the next frame: the way back from a fall or a runaway push."""
+        a = self._get(i)
+        a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
+        a.v_goal = a.facing_goal = a.pending_velocity = None
+        self.interrupt(i)
+
+    def reseed(self, seed: int) -> None:
+        """Restart every avatar's noise from `seed` as spawn seeds it (and use it for later spawns), so
+        a continuation is reproducible from here. Frames already queued are kept."""
+        self.seed = seed
+        for i, a in self.avatars.items():
+            a.gen.manual_seed(seed * 100003 + i)
+
     def interrupt(self, i: int) -> None:
         """Drop the queued frames so the next segment starts from the frame shown now; segments
         being generated for the old queue are discarded (epoch)."""
@@ -274,15 +316,24 @@ class Crowd:
         self.interrupt(a.id)
 
     # ------------------------------------------------------------ generation
+    def advance(self) -> tuple[dict[int, torch.Tensor], list[int]]:
+        """Show the next queued frame of every avatar that has one; the others hold their pose (a
+        real-time clock does not wait for generation). Returns the frame each avatar shows and the
+        ids of those that had none ready (stalled)."""
+        shown, stalled = {}, []
+        for i, a in self.avatars.items():
+            if a.queue:
+                a.state = a.queue.pop(0)
+            else:
+                stalled.append(i)
+            shown[i] = a.state
+        return shown, stalled
+
     def next_frames(self) -> dict[int, torch.Tensor]:
         """Advance every avatar by one frame (generating a segment for those that need one) and
         return the frame each now shows."""
         self.refill(1)
-        out = {}
-        for a in self.avatars.values():
-            a.state = a.queue.pop(0)
-            out[a.id] = a.state
-        return out
+        return self.advance()[0]
 
     def step_segment(self) -> dict[int, torch.Tensor]:
         """Generate one whole segment for every avatar from its current state (offline use)."""
@@ -459,7 +510,7 @@ class Avatar:
 
     @property
     def state(self) -> torch.Tensor:
-        return self.crowd.avatars[self.id].state
+        return self.crowd.state(self.id)
 
     def next_frame(self) -> torch.Tensor:
         return self.crowd.next_frames()[self.id]

@@ -75,15 +75,35 @@ def _above_ground(d: torch.Tensor, start: torch.Tensor, bone: torch.Tensor) -> t
     return torch.where((d[..., 1] < lowest)[..., None], lifted, d)
 
 
+def _pinned(start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """Foot and ankle goals (B, N, 2, 3) moved horizontally, frame by frame, toward where the
+    foot stood in the frame before (start (B, 3) before the first) by how planted the foot is
+    (foot_contacts' ramps, on the goals themselves): the ankle moves with its foot."""
+    B, N = goal.shape[:2]
+    P = torch.cat((start[:, None], goal[:, :, 0]), 1)  # (B, N + 1, 3)
+    h, v = P[:, 1:, 1], (P[:, 1:] - P[:, :-1])[..., [0, 2]].norm(dim=-1) * FPS
+    w = _ramp(h, *CONTACT_HEIGHT) * _ramp(v, *CONTACT_SPEED)  # (B, N)
+    flat = torch.tensor([1.0, 0.0, 1.0], dtype=goal.dtype)
+    out, held = goal.clone(), start
+    for t in range(N):
+        shift = w[:, t, None] * (held - goal[:, t, 0]) * flat
+        out[:, t] = goal[:, t] + shift[:, None]
+        held = out[:, t, 0]
+    return out
+
+
 def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
-               follow: float | torch.Tensor | None = None) -> torch.Tensor:
+               follow: float | torch.Tensor | None = None, pin: bool = False) -> torch.Tensor:
     """One body (DESIGN §5): the segment (B, N, 267) re-expressed as FK of its rotations on the
     body's own bones (offsets (B, 22, 3)), so the joint locations it carries are exactly those of
     the rotations exporters write. The pelvis location is the root; the rotations pose the body.
     With `follow` (0..1, a number or one per body (B,)) each leg is then bent by two-bone IK so
     that its ankle and foot move that fraction of the way to their processed locations (1: the
-    processed feet exactly; 0: the rotations' feet), and nowhere below the ground. None: no IK. Velocities are the backward
-    differences of the new locations, the first taken from x0."""
+    processed feet exactly; 0: the rotations' feet), and nowhere below the ground. None: no IK.
+    With `pin`, a planted foot (foot_contacts of those goals) is also held where it stood in the
+    frame before (x0's for the first), as far as it is planted, so it does not slide whichever
+    way the rotations move it. Velocities are the backward differences of the new locations, the
+    first taken from x0."""
     u = unpack(seg)
     off = offsets.to(seg.dtype)[:, None]  # (B, 1, 22, 3)
     root = u.joints[:, :, 0]
@@ -93,8 +113,10 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         P, _ = forward_kinematics(root, u.root_rot, u.local_rot, off)
         floor = torch.tensor([0.0, FOOT_CLEARANCE], dtype=seg.dtype)  # lowest foot, ankle heights
         follow = torch.as_tensor(follow, dtype=seg.dtype).expand(len(seg))[:, None, None, None]
-        for hip, knee, ankle, foot in _LEGS:
+        for side, (hip, knee, ankle, foot) in enumerate(_LEGS):
             goal = P[..., [foot, ankle], :] + follow * (u.joints[..., [foot, ankle], :] - P[..., [foot, ankle], :])
+            if pin:
+                goal = _pinned(unpack(x0).joints[:, foot], goal)
             goal[..., 1] = torch.maximum(goal[..., 1], floor)
             R_a, R_b = two_bone_ik(P[..., hip, :], P[..., knee, :], P[..., ankle, :], goal[..., 1, :],
                                    G[knee][..., :, 0])  # the knee's hinge: its own left axis (X)
@@ -190,7 +212,15 @@ def snap_to_ground(seg: torch.Tensor, ground: float = FOOT_CLEARANCE) -> torch.T
     return out
 
 
-def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), speed=(0.5, 1.2)):
+CONTACT_HEIGHT = (0.06, 0.10)  # a foot joint below the first is planted, above the second free (m)
+CONTACT_SPEED = (0.5, 1.2)  # likewise for its horizontal speed (m/s)
+
+
+def _ramp(x: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
+
+
+def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=CONTACT_HEIGHT, speed=CONTACT_SPEED):
     """How planted each foot is in each frame of seg (B, N, 267) after x0 (B, 267): 1 when low and
     slow, ramping linearly to 0 between the bounds of `height` (m above ground) and `speed` (m/s).
     Returns the contacts (B, N, 2)."""
@@ -198,11 +228,7 @@ def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=(0.06, 0.10), spee
     P = torch.cat((unpack(x0).joints[:, None], unpack(seg).joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
     step = (P[:, 1:] - P[:, :-1])[..., [0, 2]]
     h, v = P[:, 1:, :, 1], step.norm(dim=-1) * FPS
-
-    def ramp(x, lo, hi):
-        return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
-
-    return ramp(h, *height) * ramp(v, *speed)
+    return _ramp(h, *height) * _ramp(v, *speed)
 
 
 def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = None,

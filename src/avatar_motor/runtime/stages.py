@@ -122,7 +122,7 @@ def _free_body(cfg, ctx: StageContext, seg):
 def _leg_ik(cfg, ctx: StageContext, seg):
     # a steered body's legs step where the processed feet step; a free body's legs are already
     # its rotations' and are only kept above the ground
-    return solve_body(ctx.x0, seg, ctx.offsets, follow=ctx.batch.steered.to(seg.dtype))
+    return solve_body(ctx.x0, seg, ctx.offsets, follow=ctx.batch.steered.to(seg.dtype), pin=cfg.pin_feet)
 
 
 Stage = Callable[[object, StageContext, torch.Tensor], torch.Tensor]

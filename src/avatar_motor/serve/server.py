@@ -97,8 +97,8 @@ class Server:
             if fmt not in ("bvh", "glb", "npz") or not 0 < seconds <= 600:
                 raise ValueError("format must be bvh, glb or npz and seconds in (0, 600]")
             X = self.world.recording(i, seconds)
-            shape = self.world.crowd.avatars[i].shape
-        except (ValueError, CommandError) as e:
+            shape = self.world.crowd.shape(i)
+        except (ValueError, CommandError, KeyError) as e:
             raise web.HTTPBadRequest(text=str(e)) from None
         with tempfile.TemporaryDirectory() as d:
             path = Path(d) / f"avatar{i}.{fmt}"
@@ -141,7 +141,7 @@ class Server:
         from ..runtime.crowd import IMPULSE_PRESETS
         return {"type": "welcome", "version": P.VERSION, "fps": FPS, "model": self.world.motor.name,
                 "joint_names": JOINT_NAMES, "parents": PARENTS, "presets": sorted(IMPULSE_PRESETS),
-                "commands": P.COMMANDS, "avatars": sorted(self.world.crowd.avatars), "adaptor": self._adaptor_info(),
+                "commands": P.COMMANDS, "avatars": self.world.crowd.ids(), "adaptor": self._adaptor_info(),
                 "licence": self.world.motor.config.get("licence", "")}
 
     def _adaptor_info(self) -> dict | None:
@@ -193,7 +193,7 @@ class Server:
     # ------------------------------------------------------------ clock and worker
     async def _start_background(self, app):
         self.running = True
-        self.initial_avatars = len(self.world.crowd.avatars)
+        self.initial_avatars = len(self.world.crowd)
         # fill the queues before the clock starts, so the first ticks do not stall
         await asyncio.get_running_loop().run_in_executor(None, self._prefill)
         self.worker = threading.Thread(target=self._generation_worker, daemon=True, name="generation")

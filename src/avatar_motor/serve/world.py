@@ -16,7 +16,7 @@ from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES
 from ..body.motion_state import FPS, unpack
 from ..model.checkpoint import Motor
-from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig, standing_state
+from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
 from . import protocol as P
 
 MAX_AVATARS = 64
@@ -63,14 +63,14 @@ class World:
 
     def _avatar(self, cmd) -> int:
         i = cmd.get("avatar", 0)
-        if i not in self.crowd.avatars:
-            raise CommandError(f"no avatar {i}; avatars are {sorted(self.crowd.avatars)}")
+        if i not in self.crowd:
+            raise CommandError(f"no avatar {i}; avatars are {self.crowd.ids()}")
         return i
 
     def _cmd_spawn(self, cmd):
-        if len(self.crowd.avatars) >= MAX_AVATARS:
+        if len(self.crowd) >= MAX_AVATARS:
             raise CommandError(f"at most {MAX_AVATARS} avatars")
-        pos = cmd.get("position", [1.0 * len(self.crowd.avatars), 0.0])
+        pos = cmd.get("position", [1.0 * len(self.crowd), 0.0])
         shape = cmd.get("shape")
         i = self.crowd.spawn(shape=torch.tensor(shape, dtype=torch.float32) if shape is not None else None,
                              position=(float(pos[0]), float(pos[1])), yaw=float(cmd.get("yaw", 0.0)))
@@ -124,40 +124,34 @@ class World:
 
     def _cmd_reset(self, cmd):
         """Stand the avatar(s) up where they are, controls released."""
-        ids = [self._avatar(cmd)] if "avatar" in cmd else list(self.crowd.avatars)
+        ids = [self._avatar(cmd)] if "avatar" in cmd else self.crowd.ids()
         for i in ids:
-            a = self.crowd.avatars[i]
-            a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
-            a.v_goal = a.facing_goal = a.pending_velocity = None
-            self.crowd.interrupt(i)
+            self.crowd.reset(i)
             self.targets.pop(i, None)
 
     def _cmd_seed(self, cmd):
         """Reseed every avatar's noise (and those spawned later) for a reproducible continuation."""
-        self.crowd.seed = int(cmd["seed"])
-        for i, a in self.crowd.avatars.items():
-            a.gen.manual_seed(self.crowd.seed * 100003 + i)
+        self.crowd.reseed(int(cmd["seed"]))
 
     # ------------------------------------------------------------ clock
     def _steer_to_target(self, i: int) -> None:
         """The magnet: a goal velocity towards the target, slowing within a metre of it."""
         tg = self.targets[i]
-        a = self.crowd.avatars[i]
-        d = tg.position - a.state[[0, 2]]
+        d = tg.position - self.crowd.state(i)[[0, 2]]
+        cur = self.crowd.goal_velocity(i)
         dist = float(d.norm())
         if dist < 0.25:
-            if a.v_goal is not None:
+            if cur is not None:
                 self.crowd.set_goal(i, None)
             return
         v = d / dist * tg.speed * min(1.0, dist)
-        cur = a.v_goal
         # re-aim only when the heading changed noticeably: every re-aim restarts the segment
         if cur is None or float((cur[[0, 2]] - v).norm()) > 0.25:
             self.crowd.set_goal(i, v.tolist())
 
     def needs_generation(self) -> bool:
         with self.lock:
-            return any(len(a.queue) < LOOKAHEAD for a in self.crowd.avatars.values())
+            return self.crowd.needs_frames(LOOKAHEAD)
 
     def generate(self) -> None:
         """One batched segment for the avatars running low (worker thread)."""
@@ -174,15 +168,9 @@ class World:
         their pose and count a stall). Returns the shown states."""
         with self.lock:
             self.frame += 1
-            out = {}
-            stalled = False
-            for i, a in self.crowd.avatars.items():
-                if a.queue:
-                    a.state = a.queue.pop(0)
-                else:
-                    stalled = True
-                out[i] = a.state
-                self.history[i].append(a.state)
+            out, stalled = self.crowd.advance()
+            for i, x in out.items():
+                self.history[i].append(x)
             if stalled:
                 self.stalls += 1
             if self.frame % 5 == 0:
@@ -227,7 +215,7 @@ class World:
         return torch.stack(h)
 
     def stats(self) -> dict:
-        return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd.avatars),
+        return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd),
                 "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls, "model": self.motor.name,
                 "steps": self.config.steps}
 

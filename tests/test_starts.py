@@ -1,0 +1,68 @@
+"""Any frame is a good start: generate --init from a frame of a real-world capture gives an avatar
+on the floor with the source character's proportions, and motion that stays realistic. With the
+shipped model (a tiny random one only checks the mechanics)."""
+import numpy as np
+import pytest
+import torch
+
+from avatar_motor.body.motion_state import body_joints, body_mismatch, joints_of
+from avatar_motor.body.skeleton import rest_offsets
+from avatar_motor.cli import load_init, main
+from avatar_motor.eval import metrics as M
+from avatar_motor.eval.realism import BodyCheck, rollout
+from avatar_motor.runtime.crowd import RuntimeConfig
+
+from .conftest_models import SHIPPED, shipped_or_tiny
+from .fixture_tools import MIX_PHASES, QUIRKS
+
+SHIPPED_MODEL = (SHIPPED / "model.safetensors").exists()
+
+
+@pytest.mark.parametrize("naming", list(QUIRKS))
+def test_generate_from_a_real_world_file_keeps_its_body_and_reimports(quirky_files, tmp_path, naming):
+    from avatar_motor.data.retarget import retarget
+    from avatar_motor.io.bvh import read_bvh
+    model = SHIPPED if SHIPPED_MODEL else shipped_or_tiny(tmp_path).path
+    src = quirky_files / f"mix_{naming}.bvh"
+    init, shape = load_init(f"{src}:{int(MIX_PHASES['crouching'] * 30)}")
+    assert float(body_mismatch(init.double(), rest_offsets(shape, torch.float64)).max()) < 1e-5
+    assert shape.abs().max() > 0.1  # the file's character, not the average body
+    for ext in ("bvh", "npz"):
+        out = tmp_path / f"g.{ext}"
+        assert main(["generate", "--model", str(model), "--seconds", "2", "--init", f"{src}:30", "--out", str(out)]) == 0
+    with np.load(tmp_path / "g.npz") as z:
+        states, betas = torch.from_numpy(z["states"]).double(), torch.from_numpy(z["betas"])
+    assert torch.allclose(betas, shape)
+    assert float(body_mismatch(states, rest_offsets(shape, torch.float64)).max()) < 1e-3
+    # the BVH carries that body: re-imported as it was written, it is the npz's motion
+    b = read_bvh(tmp_path / "g.bvh")
+    from avatar_motor.body.skeleton import JOINT_NAMES
+    order = [b.names.index(n) for n in JOINT_NAMES]
+    assert np.allclose(b.offsets[order][1:], rest_offsets(shape, torch.float64).numpy()[1:] * 100, atol=1e-4)  # its bones, in cm
+    r = retarget(b, ground="keep", body="source")
+    assert r.info["skeleton"] == "smpl" and r.root_pos.shape == (60, 3)
+    assert np.allclose(r.root_pos, states[:, :3].numpy(), atol=1e-4)
+    assert float(body_joints(states, rest_offsets(shape, torch.float64))[..., 1].min()) > -0.02
+
+
+@pytest.mark.skipif(not SHIPPED_MODEL, reason="needs the shipped model")
+def test_ten_starting_frames_stay_on_the_floor_and_do_not_skate(quirky_files, artifacts):
+    """Standing, crouching and mid-stride frames of the three real-world fixtures and a walking
+    frame of the LAFAN1 one, on each file's own body shape: 8 s each."""
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from avatar_motor.viz import contact_sheet
+    from .fixture_tools import FIXTURES
+    specs = [f"{quirky_files / f'mix_{n}.bvh'}:{int(MIX_PHASES[p] * 30)}" for n in QUIRKS for p in ("standing", "crouching", "mid-stride")]
+    specs.append(f"{FIXTURES / 'walk_lafan1.bvh'}:17")
+    inits = [load_init(s) for s in specs]
+    check = BodyCheck()
+    X = rollout(load_checkpoint(SHIPPED), torch.stack([i for i, _ in inits]), torch.stack([s for _, s in inits]), 240,
+                RuntimeConfig(), 0, check=check)
+    J = joints_of(X)
+    lowest = J[..., 1].amin(-1)
+    assert check.summary()["body_mismatch_max_mm"] < 1.0
+    assert float(lowest.min()) > -0.02  # no frame sinks into the floor
+    assert M.asr(J) <= 0.05
+    assert not M.frozen(J).any()
+    contact_sheet([J[k, ::10].numpy() for k in range(len(specs))], artifacts / "starts.png",
+                  titles=[s.rsplit("/", 1)[-1] for s in specs])
