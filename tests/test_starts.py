@@ -66,3 +66,30 @@ def test_ten_starting_frames_stay_on_the_floor_and_do_not_skate(quirky_files, ar
     assert not M.frozen(J).any()
     contact_sheet([J[k, ::10].numpy() for k in range(len(specs))], artifacts / "starts.png",
                   titles=[s.rsplit("/", 1)[-1] for s in specs])
+
+
+def test_exported_files_show_the_body_the_runtime_emitted(tmp_path):
+    """BVH and glTF read back from the files alone (their own hierarchy, offsets, rotations) put
+    every joint where the runtime's state says, on the avatar's own bones; the realism report
+    reads them the same way."""
+    from avatar_motor.eval.realism import exported_files
+    from avatar_motor.io.bvh import read_bvh
+    from avatar_motor.io.export import BVH_SCALE, write_motion
+    from avatar_motor.io.gltf import read_glb_joints
+    from avatar_motor.body.skeleton import JOINT_NAMES
+    from avatar_motor.runtime.crowd import Crowd
+    crowd = Crowd(shipped_or_tiny(tmp_path), seed=3)
+    shape = torch.tensor([1.5, -1.0, 0.5, 1.0, -0.5, 0.8])
+    i = crowd.spawn(shape=shape)
+    crowd.push(i, "head", (1.0, 0.0, 2.0))
+    X = torch.cat([crowd.step_segment()[i] for _ in range(3)])
+    J = body_joints(X.double(), rest_offsets(shape, torch.float64))
+    assert torch.allclose(J, joints_of(X).double(), atol=1e-5)
+    bvh, glb = write_motion(tmp_path / "m.bvh", X, shape), write_motion(tmp_path / "m.glb", X, shape)
+    b = read_bvh(bvh)
+    P = torch.from_numpy(b.global_transforms()[0] / BVH_SCALE)[:, [b.names.index(n) for n in JOINT_NAMES]]
+    names, G = read_glb_joints(glb)
+    G = torch.from_numpy(G)[:, [names.index(n) for n in JOINT_NAMES]]
+    assert (P - J).norm(dim=-1).max() < 1e-5 and (G - J).norm(dim=-1).max() < 1e-5
+    r = exported_files([bvh, glb])
+    assert r["exported_files"] == 2 and r["exported_lowest_joint_m"] == pytest.approx(float(J[..., 1].min()), abs=1e-5)

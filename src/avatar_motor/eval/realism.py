@@ -176,9 +176,29 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     if export_dir:
         from ..io.export import write_motion
         d = Path(export_dir)
+        files = []
         for k in range(min(4, n)):
-            write_motion(d / f"rollout_{k}.bvh", X[k], shapes[k])
+            for ext in ("bvh", "glb"):
+                files.append(write_motion(d / f"rollout_{k}.{ext}", X[k], shapes[k]))
+        res.update(exported_files(files))
     return res
+
+
+def exported_files(paths) -> dict:
+    """ANCR and the lowest joint of exported BVH and glTF files, read back from the files alone
+    (each format's own hierarchy, offsets and rotations): what a user's tool shows."""
+    from ..io.bvh import read_bvh
+    from ..io.export import BVH_SCALE
+    from ..io.gltf import read_glb_joints
+    Js = []
+    for p in paths:
+        if str(p).endswith(".bvh"):
+            P, _ = read_bvh(p).global_transforms()
+            Js.append(torch.from_numpy(P / BVH_SCALE))
+        else:
+            Js.append(torch.from_numpy(read_glb_joints(p)[1]))
+    return {"exported_files": len(Js), "exported_ANCR": sum(M.ancr(J) * len(J) for J in Js) / sum(len(J) for J in Js),
+            "exported_lowest_joint_m": min(float(J[..., 1].min()) for J in Js)}
 
 
 def format_realism(r: dict) -> str:
@@ -193,6 +213,9 @@ def format_realism(r: dict) -> str:
            f"{'metric':34s} {'generated':>10s} {'real':>8s}  goal"]
     out += [f"{a:34s} {b:>10s} {c:>8s}  {d}" for a, b, c, d in rows]
     out.append(format_body(r))
+    if "exported_files" in r:
+        out.append(f"exported files read back ({r['exported_files']} BVH and glTF): ANCR {r['exported_ANCR']:.3f} (goal >= 0.99), "
+                   f"lowest joint {100 * r['exported_lowest_joint_m']:+.1f} cm (goal >= -2 cm)")
     if "stability_seconds" in r:
         out.append(f"stability {r['stability_seconds']:.0f} s x {r['stability_n']}: no NaN {r['stable_no_nan']}, "
                    f"pelvis height {r['stable_pelvis_band'][0]:.2f}..{r['stable_pelvis_band'][1]:.2f} m "

@@ -149,3 +149,50 @@ def read_glb(path: str | Path) -> tuple[dict, bytes]:
     doc = json.loads(data[20:20 + jl])
     bl, bt = struct.unpack_from("<I4s", data, 20 + jl)
     return doc, data[28 + jl:28 + jl + bl]
+
+
+def read_glb_joints(path: str | Path) -> tuple[list[str], np.ndarray]:
+    """The joints a .glb animates and their world positions (T, J, 3) at every key of its first
+    animation: the node hierarchy evaluated from the file alone (translations and rotations; the
+    scale of our joint nodes is one), as a viewer would show it. For checking exports."""
+    doc, blob = read_glb(path)
+    width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+
+    def accessor(i: int) -> np.ndarray:
+        a = doc["accessors"][i]
+        view = doc["bufferViews"][a["bufferView"]]
+        n = width[a["type"]]
+        start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
+        return np.frombuffer(blob, np.float32, a["count"] * n, start).reshape(a["count"], n).astype(np.float64)
+
+    anim = doc["animations"][0]
+    T = doc["accessors"][anim["samplers"][0]["input"]]["count"]
+    nodes = doc["nodes"]
+    trans = [np.tile(nd.get("translation", [0.0, 0.0, 0.0]), (T, 1)).astype(np.float64) for nd in nodes]
+    quat = [np.tile(nd.get("rotation", [0.0, 0.0, 0.0, 1.0]), (T, 1)).astype(np.float64) for nd in nodes]
+    animated = []
+    for ch in anim["channels"]:
+        k, what = ch["target"]["node"], ch["target"]["path"]
+        out = accessor(anim["samplers"][ch["sampler"]]["output"])
+        if what == "translation":
+            trans[k] = out
+        elif what == "rotation":
+            quat[k] = out
+        if k not in animated:
+            animated.append(k)
+    parent = {c: p for p, nd in enumerate(nodes) for c in nd.get("children", [])}
+    world: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def place(k: int) -> tuple[np.ndarray, np.ndarray]:
+        if k not in world:
+            q = torch.from_numpy(quat[k][:, [3, 0, 1, 2]])  # x, y, z, w -> w, x, y, z
+            R = rot.quat_to_matrix(q / q.norm(dim=-1, keepdim=True)).numpy()
+            if k in parent:
+                Rp, tp = place(parent[k])
+                world[k] = (Rp @ R, tp + np.einsum("tij,tj->ti", Rp, trans[k]))
+            else:
+                world[k] = (R, trans[k])
+        return world[k]
+
+    animated.sort()
+    return [nodes[k]["name"] for k in animated], np.stack([place(k)[1] for k in animated], 1)

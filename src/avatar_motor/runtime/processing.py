@@ -12,7 +12,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, PARENTS, forward_kinematics
-from ..body.motion_state import FPS, SLICES, facing_yaw, pack, unpack
+from ..body.motion_state import FPS, SLICES, facing_yaw, joints_of, pack, unpack
 
 
 def _pack_moving(x0: torch.Tensor, root_pos, root_rot, local_rot, joints: torch.Tensor) -> torch.Tensor:
@@ -78,18 +78,21 @@ def _above_ground(d: torch.Tensor, start: torch.Tensor, bone: torch.Tensor) -> t
 def _pinned(start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
     """Foot and ankle goals (B, N, 2, 3) moved horizontally, frame by frame, toward where the
     foot stood in the frame before (start (B, 3) before the first) by how planted the foot is
-    (foot_contacts' ramps, on the goals themselves): the ankle moves with its foot."""
+    (foot_contacts' ramps, on the goals themselves): the ankle moves with its foot.
+    The recurrence held_t = goal_t + w_t (held_{t-1} - goal_t) is unrolled into one weighted sum:
+    held_t = sum_k (1 - w_k) prod_{k<i<=t} w_i goal_k + prod_{i<=t} w_i start."""
     B, N = goal.shape[:2]
     P = torch.cat((start[:, None], goal[:, :, 0]), 1)  # (B, N + 1, 3)
     h, v = P[:, 1:, 1], (P[:, 1:] - P[:, :-1])[..., [0, 2]].norm(dim=-1) * FPS
     w = _ramp(h, *CONTACT_HEIGHT) * _ramp(v, *CONTACT_SPEED)  # (B, N)
-    flat = torch.tensor([1.0, 0.0, 1.0], dtype=goal.dtype)
-    out, held = goal.clone(), start
-    for t in range(N):
-        shift = w[:, t, None] * (held - goal[:, t, 0]) * flat
-        out[:, t] = goal[:, t] + shift[:, None]
-        held = out[:, t, 0]
-    return out
+    w0 = torch.cat((torch.ones_like(w[:, :1]), w), 1)  # (B, N + 1): frame 0 is the start, held as is
+    later = torch.arange(N + 1)[:, None] > torch.arange(N + 1)[None, :]  # t > k
+    carry = torch.where(later, w0[:, :, None], torch.ones(1, dtype=w.dtype)).cumprod(1)  # prod_{k<i<=t} w_i
+    keep = torch.cat((torch.ones_like(w[:, :1]), 1 - w), 1)  # what of point k stays: all of the start
+    M = torch.tril(carry * keep[:, None, :])  # (B, N + 1, N + 1), rows sum to 1
+    held = (M @ P)[:, 1:]  # (B, N, 3)
+    shift = (held - goal[:, :, 0]) * torch.tensor([1.0, 0.0, 1.0], dtype=goal.dtype)
+    return goal + shift[:, :, None]
 
 
 def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
@@ -108,30 +111,31 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
     off = offsets.to(seg.dtype)[:, None]  # (B, 1, 22, 3)
     root = u.joints[:, :, 0]
     local = u.local_rot
-    if follow is not None:
-        G = _global_rotations(u.root_rot, u.local_rot)
+    if follow is not None:  # both legs at once: index (B, N, leg, ...)
+        hip, knee, ankle, foot = (list(j) for j in zip(*_LEGS))
+        G = torch.stack(_global_rotations(u.root_rot, u.local_rot), -3)  # (B, N, 22, 3, 3)
         P, _ = forward_kinematics(root, u.root_rot, u.local_rot, off)
-        floor = torch.tensor([0.0, FOOT_CLEARANCE], dtype=seg.dtype)  # lowest foot, ankle heights
-        follow = torch.as_tensor(follow, dtype=seg.dtype).expand(len(seg))[:, None, None, None]
-        for side, (hip, knee, ankle, foot) in enumerate(_LEGS):
-            goal = P[..., [foot, ankle], :] + follow * (u.joints[..., [foot, ankle], :] - P[..., [foot, ankle], :])
-            if pin:
-                goal = _pinned(unpack(x0).joints[:, foot], goal)
-            goal[..., 1] = torch.maximum(goal[..., 1], floor)
-            R_a, R_b = two_bone_ik(P[..., hip, :], P[..., knee, :], P[..., ankle, :], goal[..., 1, :],
-                                   G[knee][..., :, 0])  # the knee's hinge: its own left axis (X)
-            G_ankle_local = G[knee].transpose(-1, -2) @ G[ankle]
-            G[hip] = R_a @ G[hip]
-            G[knee] = R_a @ R_b @ G[knee]
-            G[ankle] = G[knee] @ G_ankle_local
-            p_ankle = P[..., hip, :] + (G[hip] @ off[..., knee, :, None])[..., 0] + (G[knee] @ off[..., ankle, :, None])[..., 0]
-            bone = (G[ankle] @ off[..., foot, :, None])[..., 0]
-            G[ankle] = rot.rotation_between(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G[ankle]
-        local = list(local.unbind(-3))
-        for hip, knee, ankle, _ in _LEGS:
-            for j in (hip, knee, ankle):  # the foot joint keeps its local rotation
-                local[j - 1] = G[PARENTS[j]].transpose(-1, -2) @ G[j]
-        local = torch.stack(local, -3)
+        ends = torch.tensor([foot, ankle]).T  # (leg, foot/ankle)
+        follow = torch.as_tensor(follow, dtype=seg.dtype).expand(len(seg))[:, None, None, None, None]
+        goal = P[:, :, ends] + follow * (u.joints[:, :, ends] - P[:, :, ends])  # (B, N, 2, 2, 3)
+        if pin:
+            B, N = goal.shape[:2]
+            start = joints_of(x0)[:, foot].reshape(B * 2, 3)
+            goal = _pinned(start, goal.transpose(1, 2).reshape(B * 2, N, 2, 3)).reshape(B, 2, N, 2, 3).transpose(1, 2)
+        goal[..., 1] = torch.maximum(goal[..., 1], torch.tensor([0.0, FOOT_CLEARANCE], dtype=seg.dtype))  # foot, ankle
+        G_hip, G_knee, G_ankle = G[:, :, hip], G[:, :, knee], G[:, :, ankle]
+        R_a, R_b = two_bone_ik(P[:, :, hip], P[:, :, knee], P[:, :, ankle], goal[..., 1, :],
+                               G_knee[..., :, 0])  # the knee's hinge: its own left axis (X)
+        ankle_local = G_knee.transpose(-1, -2) @ G_ankle
+        G_hip, G_knee = R_a @ G_hip, R_a @ R_b @ G_knee
+        G_ankle = G_knee @ ankle_local
+        p_ankle = P[:, :, hip] + (G_hip @ off[:, :, knee, :, None])[..., 0] + (G_knee @ off[:, :, ankle, :, None])[..., 0]
+        bone = (G_ankle @ off[:, :, foot, :, None])[..., 0]
+        G_ankle = rot.rotation_between(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G_ankle
+        local = local.clone()  # the foot joints keep their local rotations
+        local[:, :, [j - 1 for j in hip]] = G[:, :, [PARENTS[j] for j in hip]].transpose(-1, -2) @ G_hip
+        local[:, :, [j - 1 for j in knee]] = G_hip.transpose(-1, -2) @ G_knee
+        local[:, :, [j - 1 for j in ankle]] = G_knee.transpose(-1, -2) @ G_ankle
     J, _ = forward_kinematics(root, u.root_rot, local, off)
     return _pack_moving(x0, root, u.root_rot, local, J)
 
