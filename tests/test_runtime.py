@@ -442,13 +442,14 @@ def test_smoothing_width_can_differ_per_body():
 def test_steering_velocity_turns_with_the_body(motor, with_body, expected):
     # a standing body facing +Z told to go right (-X): steer_with_body rotates the trunk's steering
     # velocity from the goal back toward where the body faces, by that fraction of the angle
-    from avatar_motor.runtime.crowd import RuntimeConfig, STEER_JOINTS
+    from avatar_motor.runtime.crowd import RuntimeConfig
+    from avatar_motor.runtime.sampler import STEER_JOINTS
     from avatar_motor.body.motion_state import SLICES
     crowd = Crowd(motor, RuntimeConfig(steer_impulse=1.0, turn_impulse=0.0, steer_with_body=with_body))
     x0 = standing_state()[None].double()
     x = x0.clone()
     goal = torch.tensor([-1.0, 0.0, 0.0])
-    crowd._steer(x, [goal], [goal], torch.eye(3, dtype=torch.float64)[None])
+    crowd.sampler._steer(x, [goal], [goal], torch.eye(3, dtype=torch.float64)[None])
     dv = (x - x0)[0, SLICES["velocities"]].view(22, 3)[STEER_JOINTS].mean(0)
     assert torch.allclose(dv[[0, 2]].float(), torch.tensor(expected), atol=1e-3)
 

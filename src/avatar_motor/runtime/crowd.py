@@ -1,12 +1,11 @@
-"""Avatars and crowds: PRIMAL's Algorithm 1 for many bodies in one batched forward pass.
+"""The avatar registry (`Crowd`) and PRIMAL's Algorithm 1 for many bodies in one batched pass.
 
+The registry is the only thing that changes an avatar: the server and the CLI call its methods.
 One segment per step (for the avatars whose queue of frames ran out):
-  1 canonicalize the initial state (+ optional joint re-projection); impulses and steering
-    impulses go into the velocities the network is conditioned on
-  2 condition embedding (inside the denoiser)
-  3 reverse diffusion with optional gradient guidance; then our test-time processing: velocity
-    fusion, root adjustment toward a facing goal, foot locking, speed-adaptive smoothing, snap to
-    ground, inertialization
+  1 canonicalize the initial state (a SegmentBatch snapshot of the avatars)
+  2-3 the sampler (runtime/sampler.py): impulses and steering impulses in the velocities the
+    network is conditioned on, reverse diffusion with optional gradient guidance, adaptors
+  then the post-processing stages (runtime/stages.py) chosen by the config, ending in one body
   4 back to world, queue the 15 new frames.
 A command (impulse, push, goal) takes effect at the next frame: the avatar's queued frames are
 dropped and its next segment starts from the frame it is showing now.
@@ -20,9 +19,9 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
-from ..body.motion_state import FPS, SLICES, STATE_DIM, canonical_transform, apply_transform, pack
+from ..body.motion_state import SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
-from .guidance import facing_loss_and_grad, facing_of, move_loss_and_grad, path_loss_and_grad
+from .sampler import Sampler
 from .stages import DEFAULT_STAGES, SegmentBatch, StageContext, check_stages, run_stages
 
 
@@ -40,9 +39,6 @@ IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
     "forward_roll": (_joints("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow"), (0.0, -0.5, 0.5)),
 }
 IMPULSE_SCALE = 30.0
-# the joints that carry a steering impulse (the trunk, as in the forward_run preset)
-STEER_JOINTS = _joints("pelvis", "spine1", "spine2", "spine3", "neck", "head", "left_collar", "right_collar",
-                       "left_shoulder", "right_shoulder")
 
 
 @dataclass
@@ -160,9 +156,9 @@ class Crowd:
     def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0, adaptor=None):
         """adaptor: an AdaptedDenoiser on motor's network (labels or targets), or None."""
         self.motor = motor
-        self.adaptor = adaptor
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
+        self.sampler = Sampler(motor, self.cfg, adaptor)
         self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
         self._next_id = 0
@@ -184,6 +180,11 @@ class Crowd:
     def remove(self, i: int) -> None:
         self._get(i)
         del self.avatars[i]
+
+    @property
+    def adaptor(self):
+        """The sampler's adaptor (labels or targets), or None."""
+        return self.sampler.adaptor
 
     def _get(self, i: int) -> AvatarState:
         if i not in self.avatars:
@@ -394,54 +395,23 @@ class Crowd:
         """Algorithm 1 for a prepared batch; touches no avatar (safe outside the lock)."""
         import time
 
-        cfg, motor = self.cfg, self.motor
         t0 = time.perf_counter()
-        x0 = batch.x0
-        B = len(x0)
         offsets = rest_offsets(batch.shapes, torch.float64)
         # 1 canonicalize
-        tf = canonical_transform(x0)
+        tf = canonical_transform(batch.x0)
         Rt = tf.R.transpose(-1, -2)
-        x0c = apply_transform(x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
-        # the network sees the impulse in x0's velocities; the blending below keeps the true x0
-        x0_cond = x0c.clone()
-        x0_cond[:, SLICES["velocities"]] += (batch.impulse_velocity @ Rt.transpose(-1, -2)).reshape(B, 66)
-        if cfg.steer_impulse > 0 or cfg.turn_impulse > 0:
-            self._steer(x0_cond, batch.v_goal, batch.facing_goal, Rt)
+        x0c = apply_transform(batch.x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance
-        norm = motor.norm
-        cond = norm.encode(x0_cond.float())
-        guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float())
-        N = self.frames_per_segment
-        seg_n = motor.diffusion.sample(self._denoiser(batch, tf, cond), (B, N, STATE_DIM), cfg.steps, batch.gens, guide, cfg.eta)
+        seg = self.sampler.sample(batch, x0c, tf)
         t2 = time.perf_counter()
         # test-time processing, ending in one body
-        seg = run_stages(cfg, StageContext(x0c, offsets, batch, Rt), norm.decode(seg_n).double())
+        seg = run_stages(self.cfg, StageContext(x0c, offsets, batch, Rt), seg)
         # 4 back to world
         seg_w = apply_transform(seg, tf.R, tf.t).float()
         t3 = time.perf_counter()
-        self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": B}
+        self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": len(batch)}
         return seg_w
-
-    def _denoiser(self, batch: SegmentBatch, tf, cond):
-        """The base network, or the adaptor with per-avatar controls (scale 0 for the avatars it does
-        not steer, which is the base model exactly)."""
-        net, ad = self.motor.net, self.adaptor
-        if ad is None or not any(batch.adapted):
-            return lambda x_t, t: net(t, x_t, cond)
-        scale = torch.tensor([s if on else 0.0 for on, s in zip(batch.adapted, batch.control_scales)])
-        if ad.cfg.control == "label":
-            y = torch.tensor([lb if lb is not None else ad.null_label for lb in batch.labels])
-        else:
-            Rt = tf.R.transpose(-1, -2).float()
-            y = torch.zeros(len(batch), 2)
-            for k, tg in enumerate(batch.targets):
-                if tg is not None:
-                    local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
-                    y[k] = local[[0, 2]]
-        s = scale[:, None, None]
-        return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
 
     def commit(self, batch: SegmentBatch, seg_w: torch.Tensor) -> None:
         """Append generated frames, unless a command interrupted the avatar meanwhile."""
@@ -449,56 +419,6 @@ class Crowd:
             a = self.avatars.get(i)
             if a is not None and a.epoch == epoch:
                 a.queue.extend(seg_w[k].unbind(0))
-
-    def _steer(self, x0c: torch.Tensor, v_goals: list, f_goals: list, Rt: torch.Tensor) -> None:
-        """Steering as an impulse (our addition): the network starts each segment already moving the
-        way it should go. The trunk's initial velocity is moved toward the goal velocity
-        (horizontally, by steer_impulse x the difference), and the body gets a yaw rate toward the
-        facing goal (turn_impulse x the angle, rad/s), as velocities about the pelvis."""
-        cfg = self.cfg
-        vel = x0c[:, SLICES["velocities"]].view(len(x0c), 22, 3)
-        J = x0c[:, SLICES["joints"]].view(len(x0c), 22, 3)
-        for k, (v, f) in enumerate(zip(v_goals, f_goals)):
-            angle = None
-            if f is not None:
-                goal_f = Rt[k] @ f.double()
-                z, _ = facing_of(x0c[k])
-                angle = torch.atan2(z[2] * goal_f[0] - z[0] * goal_f[2], (z * goal_f).sum())  # about +Y, z -> goal
-            if v is not None and cfg.steer_impulse > 0:
-                goal = Rt[k] @ v.double()
-                if angle is not None and cfg.steer_with_body > 0:
-                    goal = rot.yaw_matrix(-cfg.steer_with_body * angle) @ goal  # back toward where the body faces
-                dv = cfg.steer_impulse * (goal - vel[k, STEER_JOINTS].mean(0))
-                dv[1] = 0.0
-                vel[k, STEER_JOINTS] += dv
-            if angle is not None and cfg.turn_impulse > 0:
-                w = cfg.turn_impulse * angle  # a signal to the network more than a physical rate
-                r = J[k] - J[k, 0]
-                vel[k] += torch.stack((w * r[:, 2], torch.zeros_like(w * r[:, 0]), -w * r[:, 0]), -1)
-
-    def _guidance(self, v_goals: list, f_goals: list, Rt: torch.Tensor, x0c: torch.Tensor):
-        cfg = self.cfg
-        has_v = [v is not None for v in v_goals]
-        has_f = [f is not None for f in f_goals]
-        if not any(has_v) and not any(has_f):
-            return None
-        z = torch.zeros(3)
-        v_goal = torch.stack([Rt[k] @ (v if v is not None else z) for k, v in enumerate(v_goals)])
-        f_goal = torch.stack([Rt[k] @ (f if f is not None else z) for k, f in enumerate(f_goals)])
-        on_v = torch.tensor(has_v, dtype=torch.float32)[:, None, None]
-        wf = torch.tensor(has_f, dtype=torch.float32)[:, None, None] * cfg.facing_weight
-        norm = self.motor.norm
-
-        def guide(x0n):
-            x = norm.decode(x0n)
-            _, gv = move_loss_and_grad(x, v_goal)
-            _, gp = path_loss_and_grad(x, x0c, v_goal)
-            _, gf = facing_loss_and_grad(x, f_goal)
-            step = on_v * (cfg.move_weight * gv + cfg.path_weight * gp) + wf * gf  # real units
-            return norm.encode(x - step)
-
-        return guide
-
 
 class Avatar:
     """One body: a Crowd of one with a friendlier interface."""
