@@ -28,7 +28,10 @@ import numpy as np
 from ..io.bvh import BVHError, read_bvh
 from .retarget import resample, retarget
 
-CACHE_VERSION = 3  # 2: twist-canonical retargeting; 3: handedness judged per frame (no mirrored sprints)
+# 2: twist-canonical retargeting; 3: handedness judged per frame (no mirrored sprints); 4: zero-length
+# and in-between source bones, leaf bones from ranked children, ignored joints recorded (Bandai
+# clips convert as in 3)
+CACHE_VERSION = 4
 _BANDAI = re.compile(r"dataset-(?P<part>\d+)_(?P<content>[a-z\-]+)_(?P<style>[a-z\-]+)_(?P<id>\d+)$")
 
 

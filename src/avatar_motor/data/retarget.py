@@ -200,8 +200,8 @@ def _leaf_vector(b: BVH, P_w: torch.Tensor, G_w: torch.Tensor, A: np.ndarray, sc
 
 def estimate_shape(P: torch.Tensor, m: "Mapping") -> torch.Tensor:
     """Body-shape parameters (SHAPE_DIM,) of a source skeleton from its joint positions in metres,
-    (F, J, 3) over the frames of its motion or (J, 3) for one pose: the overall size from leg plus trunk length (stature), then legs, trunk,
-    arms, shoulder and hip width as proportions of that size; each clamped to +-2.5 like the
+    (F, J, 3) over the frames of its motion or (J, 3) for one pose: the overall size from leg plus
+    trunk length (stature), then legs, trunk, arms, shoulder and hip width as proportions of it; each clamped to +-2.5 like the
     shapes the model trained with. Each length is a sum over the canonical bones of the distance
     between their mapped source joints (median over frames): unlike a straight line across
     several bones it does not depend on the pose, and joints the source inserts along one of our

@@ -1,11 +1,13 @@
-"""Post-processing as named, ordered stages (DESIGN §5). Each stage is a pure function of the
-segment batch and the generated segment (canonical frame), configured by the runtime config;
-`RuntimeConfig.stages` picks them by name and order. Whatever is chosen, the segment ends as one
+"""Post-processing as named, ordered stages (DESIGN §5). Each stage maps the generated segment
+(canonical frame) to a new one, reading the batch's controls and the runtime config and changing
+no avatar (turn_toward leaves the yaw it added in the context, for lock_feet not to undo it);
+the work is done by the pure functions of processing.py. `RuntimeConfig.stages` picks them by name
+and order. Whatever is chosen, the segment ends as one
 body: when the last stage chosen is not a body stage, `fk` is appended, so the joint locations
 that leave the runtime are FK of the rotations that leave it."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -50,8 +52,7 @@ class StageContext:
     offsets: torch.Tensor  # (B, 22, 3) each body's bones
     batch: SegmentBatch
     Rt: torch.Tensor  # (B, 3, 3) world -> canonical rotation
-    smoothing: torch.Tensor | None = None  # (B,) per-body sigma, set by the runtime
-    turned: torch.Tensor | None = field(default=None)  # (B, N) yaw added on purpose by turn_toward
+    turned: torch.Tensor | None = None  # (B, N) yaw added on purpose by turn_toward
 
 
 def _fuse(cfg, ctx: StageContext, seg):
@@ -111,11 +112,9 @@ def _fk(cfg, ctx: StageContext, seg):
 
 
 def _free_body(cfg, ctx: StageContext, seg):
-    # measured (eval realism, 64 x 8 s, on the exported body): the network's rotations pose a
-    # free body more naturally than its joint locations do (naturalness 1.40 vs 1.58 with the
-    # legs bent onto them), so the root-motion stages work on that body. A steered body keeps
-    # the predicted locations: its rotations lag the steering and their feet glide (eval control,
-    # ASR 0.129 vs 0.044)
+    # the network's rotations pose a free body more naturally than its joint locations do, so the
+    # root-motion stages work on that body; a steered body keeps the predicted locations, as its
+    # rotations lag the steering and their feet glide (model card, "One body")
     return torch.where(ctx.batch.steered[:, None, None], seg, solve_body(ctx.x0, seg, ctx.offsets))
 
 
