@@ -406,6 +406,9 @@ def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch)
     crowd.set_label(labelled, "bow", 0.0)
     crowd.step_segment()
     assert seen[-1] == [False, False]
+    crowd.set_label(labelled, "bow")
+    crowd.reset(labelled)  # every control released
+    assert crowd.avatars[labelled].label is None and not crowd.avatars[labelled].adapted
 
 
 @pytest.mark.parametrize("kind", ["controlnet", "finetune"])

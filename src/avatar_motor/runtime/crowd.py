@@ -218,11 +218,13 @@ class Crowd:
         return any(len(a.queue) < min_frames for a in self.avatars.values())
 
     def reset(self, i: int) -> None:
-        """Stand avatar i up where it is (pelvis x, z; facing +Z) with its goals and pending impulses
-        released, from the next frame: the way back from a fall or a runaway push."""
+        """Stand avatar i up where it is (pelvis x, z; facing +Z) with every control released (goals,
+        label, target, pending impulses), from the next frame: the way back from a fall or a runaway
+        push."""
         a = self._get(i)
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
-        a.v_goal = a.facing_goal = a.pending_velocity = None
+        a.v_goal = a.facing_goal = a.pending_velocity = a.label = a.target = None
+        a.near_target = False
         self.interrupt(i)
 
     def reseed(self, seed: int) -> None:
