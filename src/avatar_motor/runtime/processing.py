@@ -33,13 +33,6 @@ def _move_frames(x0: torch.Tensor, u, R: torch.Tensor, t: torch.Tensor) -> torch
 _LEGS = [tuple(JOINT_INDEX[f"{side}_{j}"] for j in ("hip", "knee", "ankle", "foot")) for side in ("left", "right")]
 
 
-def _global_rotations(root_rot: torch.Tensor, local_rot: torch.Tensor) -> list[torch.Tensor]:
-    G = [root_rot]
-    for j in range(1, len(PARENTS)):
-        G.append(G[PARENTS[j]] @ local_rot[..., j - 1, :, :])
-    return G
-
-
 def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch.Tensor,
                 bend_axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rotations that put the end c of the chain a-b-c (hip, knee, ankle positions (..., 3)) on
@@ -47,8 +40,9 @@ def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch
     plane to the distance |target - a| (clamped to what the bones reach), then the whole chain
     turns about a by the smallest rotation onto the target, so the knee stays in its plane.
     bend_axis (..., 3) is the knee's hinge for a straight leg, whose plane is undefined: the
-    axis about which a positive turn bends the knee (closes its angle). Returns the world rotations (..., 3, 3)
-    to apply at b (before) and at a (after): G_b' = R_a R_b G_b, G_a' = R_a G_a."""
+    axis about which a positive turn bends the knee (closes its angle). Returns the world
+    rotations (..., 3, 3) to apply at b (before) and at a (after): G_b' = R_a R_b G_b,
+    G_a' = R_a G_a."""
     lab, lcb = (b - a).norm(dim=-1), (c - b).norm(dim=-1)
     lat = (target - a).norm(dim=-1).clamp(min=(lab - lcb).abs() + 1e-4, max=lab + lcb - 1e-4)
     cos_now = (rot.normalize(a - b) * rot.normalize(c - b)).sum(-1).clamp(-1.0, 1.0)
@@ -113,8 +107,7 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
     local = u.local_rot
     if follow is not None:  # both legs at once: index (B, N, leg, ...)
         hip, knee, ankle, foot = (list(j) for j in zip(*_LEGS))
-        G = torch.stack(_global_rotations(u.root_rot, u.local_rot), -3)  # (B, N, 22, 3, 3)
-        P, _ = forward_kinematics(root, u.root_rot, u.local_rot, off)
+        P, G = forward_kinematics(root, u.root_rot, u.local_rot, off)  # G: (B, N, 22, 3, 3) global rotations
         ends = torch.tensor([foot, ankle]).T  # (leg, foot/ankle)
         follow = torch.as_tensor(follow, dtype=seg.dtype).expand(len(seg))[:, None, None, None, None]
         goal = P[:, :, ends] + follow * (u.joints[:, :, ends] - P[:, :, ends])  # (B, N, 2, 2, 3)
