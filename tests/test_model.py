@@ -225,3 +225,69 @@ if tr.rank == 0:
     x, x0 = torch.randn(4, 15, STATE_DIM, generator=g), torch.randn(4, STATE_DIM, generator=g)
     t = torch.tensor([0, 10, 30, 49])
     assert torch.allclose(nets[0](t, x, x0), nets[1](t, x, x0), atol=1e-4)
+
+
+class _Killed(BaseException):
+    """A simulated kill -9: nothing after it runs (not even except Exception handlers)."""
+
+
+def _kill_at(monkeypatch, k: int) -> list:
+    """Make the k-th file operation of a save (renames, removals, writes) never happen: the
+    process 'dies' just before it. Returns the list of operations seen."""
+    import shutil
+    from pathlib import Path
+
+    import avatar_motor.model.checkpoint as ckpt
+    import avatar_motor.train.trainer as trainer
+    seen = []
+
+    def wrap(name, fn):
+        def op(*a, **kw):
+            seen.append(name)
+            if len(seen) == k:
+                raise _Killed(name)
+            return fn(*a, **kw)
+        return op
+
+    monkeypatch.setattr(Path, "rename", wrap("rename", Path.rename))
+    monkeypatch.setattr(Path, "write_text", wrap("write_text", Path.write_text))
+    monkeypatch.setattr(Path, "mkdir", wrap("mkdir", Path.mkdir))
+    monkeypatch.setattr(shutil, "rmtree", wrap("rmtree", shutil.rmtree))
+    monkeypatch.setattr(ckpt, "save_file", wrap("save_file", ckpt.save_file))
+    monkeypatch.setattr(trainer, "save_file", wrap("save_file", trainer.save_file))
+    return seen
+
+
+def test_a_kill_at_any_instant_of_a_save_leaves_a_state_that_resumes_exactly(tmp_path, fixture_cache, monkeypatch):
+    # dropout 0.1: resume is exact only if the saved random state is the one training goes on with
+    from avatar_motor.train.trainer import Trainer
+    cfg = dict(model=DenoiserConfig(width=32, depth=2, heads=4, ff=64, dropout=0.1), steps=6, checkpoint_every=3)
+    full = Trainer(_cfg(tmp_path / "full", fixture_cache, **cfg), progress=False)
+    full.run()
+    reference = {k: v.clone() for k, v in full.net.state_dict().items()}
+    k = 1
+    while True:  # kill the second save (at step 6, over the first one's state) at its k-th file operation
+        out = tmp_path / f"k{k}"
+        Trainer(_cfg(out, fixture_cache, **cfg), progress=False).run(3)
+        t = Trainer(_cfg(out, fixture_cache, **cfg), progress=False)
+        with monkeypatch.context() as m:
+            seen = _kill_at(m, k)
+            try:
+                t.run()
+                finished = True
+            except _Killed:
+                finished = False
+        again = Trainer(_cfg(out, fixture_cache, **cfg), progress=False)  # the next run, after the kill
+        assert again.step in (3, 6), f"kill at operation {k} ({seen[-1]}): resumed at step {again.step}"
+        leftovers = sorted(p.name for p in out.iterdir() if p.name.endswith((".tmp", ".old")))
+        assert leftovers == [], f"kill at operation {k}: stale {leftovers}"
+        assert load_checkpoint(out / "checkpoint").config["trained_steps"] in (3, 6)
+        again.run()
+        for name, v in again.net.state_dict().items():
+            assert torch.equal(v, reference[name]), f"kill at operation {k} ({seen[-1]}): {name} differs after resuming"
+        steps = [json.loads(ln)["step"] for ln in (out / "metrics.jsonl").read_text().splitlines()]
+        assert steps == sorted(set(steps)), f"kill at operation {k}: metric lines duplicated"
+        if finished:
+            break
+        k += 1
+    assert k > 8  # every step of both folder swaps was hit

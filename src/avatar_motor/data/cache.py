@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.atomic import write_file
 from ..io.bvh import BVHError, read_bvh
 from .retarget import resample, retarget
 
@@ -97,17 +98,12 @@ class MotionCache:
                               f"{CACHE_VERSION}). Run 'avatar-motor data import' on its source again: it converts every file anew")
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-        try:
+        def write(tmp: Path) -> None:
             with open(tmp, "wb") as f:
                 np.savez(f, root_pos=self.root_pos, quats=self.quats, clip_start=self.clip_start,
                          clip_len=self.clip_len, meta=np.array(json.dumps(self.meta)))
-            tmp.replace(path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        self.path = path
+
+        self.path = write_file(path, write)
 
 
 def _iter_sources(src: Path):

@@ -16,6 +16,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import MIRROR, SHAPE_DIM, forward_kinematics, pelvis_height, random_shapes, rest_offsets
+from ..io.atomic import write_file
 from .cache import MotionCache, is_held_out
 from ..body.motion_state import FPS, STATE_DIM, canonicalize, finite_velocities, pack
 
@@ -163,7 +164,5 @@ def load_or_compute_stats(ds: SegmentDataset, cache_paths: list[Path]) -> Normal
         except (ValueError, json.JSONDecodeError):
             pass  # recompute below and overwrite the bad or stale file
     norm = Normalizer.compute(ds)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps({**norm.to_dict(), "sources": sources}))
-    tmp.replace(p)
+    write_file(p, lambda tmp: tmp.write_text(json.dumps({**norm.to_dict(), "sources": sources})))
     return norm

@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from pathlib import Path
 
 import torch
@@ -21,6 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..data.dataset import SegmentDataset
+from ..io.atomic import write_file
 from ..body.motion_state import FPS, SLICES, canonicalize, joints_of
 from ..model.checkpoint import Motor
 from ..runtime.crowd import RuntimeConfig
@@ -126,11 +126,9 @@ def train_evaluators(ds: SegmentDataset, label_key: str, classes: list[str], sec
         menc, lenc = train_encoder(ds, label_key, classes, seconds, steps, s, progress)
         out.append((menc, lenc))
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(path.name + f".tmp{os.getpid()}")  # written whole, then renamed
-            torch.save({"frames": menc.frames, "motion": menc.state_dict(), "label": lenc.state_dict(),
-                        "threads": torch.get_num_threads()}, tmp)
-            os.replace(tmp, path)
+            state = {"frames": menc.frames, "motion": menc.state_dict(), "label": lenc.state_dict(),
+                     "threads": torch.get_num_threads()}
+            write_file(path, lambda tmp, state=state: torch.save(state, tmp))
     return out
 
 

@@ -313,11 +313,9 @@ def format_bvh(b: BVH, precision: int = 6) -> str:
 
 
 def write_bvh(path: str | Path, b: BVH, precision: int = 6) -> None:
-    """Write atomically (temporary file, then rename)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(format_bvh(b, precision))
-    tmp.replace(path)
+    """Write atomically (io/atomic.py)."""
+    from .atomic import write_file
+    write_file(path, lambda tmp: tmp.write_text(format_bvh(b, precision)))
 
 
 def bvh_from_rotations(names: list[str], parents: list[int], offsets: np.ndarray, root_pos: np.ndarray,

@@ -5,7 +5,6 @@ io/gltf.py). All write through a temporary file and a rename.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -14,21 +13,12 @@ import torch
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, SHAPE_NAMES, rest_offsets
 from ..body.motion_state import FPS, unpack
+from .atomic import write_file
 from .bvh import bvh_from_rotations, write_bvh
 
 BVH_SCALE = 100.0  # metres -> centimetres, what BVH viewers expect
 LEAF_END_SITES = {"head": (0.0, 0.10, 0.0), "left_wrist": (0.08, 0.0, 0.0), "right_wrist": (-0.08, 0.0, 0.0),
                   "left_foot": (0.0, 0.0, 0.05), "right_foot": (0.0, 0.0, 0.05)}
-
-
-def _atomic(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    try:
-        write(tmp)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def canonical_bvh(states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS):
@@ -47,7 +37,7 @@ def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | N
     suffix = path.suffix.lower()
     if suffix == ".bvh":
         b = canonical_bvh(states, shape, fps)
-        _atomic(path, lambda tmp: write_bvh(tmp, b))
+        write_file(path, lambda tmp: write_bvh(tmp, b))
     elif suffix == ".npz":
         u = unpack(states.double())
         arrays = {
@@ -64,12 +54,12 @@ def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | N
         def w(tmp):
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
-        _atomic(path, w)
+        write_file(path, w)
     elif suffix in (".glb", ".gltf"):
         from .gltf import write_glb
         if suffix == ".gltf":
             raise ValueError(f"{path}: write glTF binary (.glb), which holds the body and its animation in one file")
-        _atomic(path, lambda tmp: write_glb(tmp, states, shape, fps))
+        write_file(path, lambda tmp: write_glb(tmp, states, shape, fps))
     else:
         raise ValueError(f"{path}: unknown motion format {suffix!r}; use .bvh, .npz or .glb")
     return path

@@ -19,8 +19,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
-import shutil
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,6 +27,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from ..io.atomic import replace_folder
 from .denoiser import Denoiser
 
 ADAPTOR_FORMAT = "avatar-motor-adaptor/1"
@@ -164,19 +163,21 @@ def base_fingerprint(net: Denoiser) -> str:
     return h.hexdigest()[:16]
 
 
+def _adaptor_complete(folder: Path) -> bool:
+    """An adaptor folder whose files were all written (adaptor.json is written last)."""
+    return (folder / "adaptor.safetensors").exists() and (folder / "adaptor.json").exists()
+
+
 def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, info: dict | None = None) -> Path:
-    folder = Path(folder)
-    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    save_file({k: v.detach().contiguous() for k, v in model.adaptor_state().items()}, str(tmp / "adaptor.safetensors"))
-    (tmp / "adaptor.json").write_text(json.dumps({"format": ADAPTOR_FORMAT, "adaptor": asdict(model.cfg),
-                                                  "base_model": base_name, "base_fingerprint": model.base_fingerprint,
-                                                  **(info or {})}, indent=1))
-    if folder.exists():
-        shutil.rmtree(folder)
-    tmp.rename(folder)
-    return folder
+    """Write so that a kill at any instant leaves the old adaptor or the new one (io/atomic.py)."""
+    meta = {"format": ADAPTOR_FORMAT, "adaptor": asdict(model.cfg), "base_model": base_name,
+            "base_fingerprint": model.base_fingerprint, **(info or {})}
+
+    def fill(tmp: Path) -> None:
+        save_file({k: v.detach().contiguous() for k, v in model.adaptor_state().items()}, str(tmp / "adaptor.safetensors"))
+        (tmp / "adaptor.json").write_text(json.dumps(meta, indent=1))
+
+    return replace_folder(folder, fill, _adaptor_complete)
 
 
 def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = None) -> AdaptedDenoiser:

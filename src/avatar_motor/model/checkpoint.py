@@ -6,8 +6,6 @@ schedule, the training data and the licence. Loading validates all of it and nam
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -16,6 +14,7 @@ from safetensors.torch import load_file, save_file
 
 from ..data.dataset import Normalizer
 from ..body.motion_state import SLICES, STATE_DIM
+from ..io.atomic import replace_folder
 from .denoiser import Denoiser, DenoiserConfig
 from .diffusion import Diffusion
 
@@ -41,14 +40,15 @@ class Motor:
         return self.config.get("name", self.path.name if self.path else "model")
 
 
+def checkpoint_complete(folder: Path) -> bool:
+    """A checkpoint folder whose files were all written (card.md is written last)."""
+    return all((Path(folder) / f).exists() for f in ("model.safetensors", "config.json", "card.md"))
+
+
 def save_checkpoint(folder: str | Path, net: Denoiser, norm: Normalizer, extra: dict | None = None,
                     card: str | None = None, diffusion_steps: int = 50, half: bool = False) -> Path:
-    """Write atomically: a temporary sibling folder is filled, then renamed over the target.
+    """Write so that a kill at any instant leaves the old checkpoint or the new one (io/atomic.py).
     half=True stores the weights as float16 (half the size; loading casts back to float32)."""
-    folder = Path(folder)
-    tmp = folder.with_name(folder.name + f".tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     cfg = {
         "format": FORMAT,
         "denoiser": net.cfg.to_dict(),
@@ -59,15 +59,13 @@ def save_checkpoint(folder: str | Path, net: Denoiser, norm: Normalizer, extra: 
         **(extra or {}),
     }
     dtype = torch.float16 if half else torch.float32
-    save_file({k: v.detach().to(dtype).contiguous().cpu() for k, v in net.state_dict().items()}, str(tmp / "model.safetensors"))
-    (tmp / "config.json").write_text(json.dumps(cfg, indent=1))
-    (tmp / "card.md").write_text(card or f"# {folder.name}\n\nNo card was written for this checkpoint.\n")
-    old = folder.with_name(folder.name + f".old{os.getpid()}")
-    if folder.exists():
-        folder.rename(old)
-    tmp.rename(folder)
-    shutil.rmtree(old, ignore_errors=True)
-    return folder
+
+    def fill(tmp: Path) -> None:
+        save_file({k: v.detach().to(dtype).contiguous().cpu() for k, v in net.state_dict().items()}, str(tmp / "model.safetensors"))
+        (tmp / "config.json").write_text(json.dumps(cfg, indent=1))
+        (tmp / "card.md").write_text(card or f"# {Path(folder).name}\n\nNo card was written for this checkpoint.\n")
+
+    return replace_folder(folder, fill, checkpoint_complete)
 
 
 def ship_checkpoint(src: str | Path, dst: str | Path, card: str, extra: dict | None = None) -> Path:
@@ -102,7 +100,8 @@ def load_checkpoint(folder: str | Path) -> Motor:
     if unknown:
         raise CheckpointError(f"{cfg_path}: unknown denoiser fields {sorted(unknown)}")
     try:
-        net = Denoiser(DenoiserConfig(**dcfg))
+        with torch.random.fork_rng():  # its random init is overwritten: loading leaves the caller's random stream alone
+            net = Denoiser(DenoiserConfig(**dcfg))
         norm = Normalizer.from_dict(cfg["normalizer"])
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f"{cfg_path}: invalid config ({e})") from None

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,7 +21,8 @@ from safetensors.torch import load_file, save_file
 
 from ..data.cache import MotionCache, default_cache_dir
 from ..data.dataset import SegmentConfig, SegmentDataset, load_or_compute_stats
-from ..model.checkpoint import save_checkpoint
+from ..io.atomic import recover_folder, replace_folder, write_file
+from ..model.checkpoint import checkpoint_complete, save_checkpoint
 from ..model.denoiser import Denoiser, DenoiserConfig
 from ..model.diffusion import Diffusion
 from .losses import motion_loss
@@ -159,8 +159,10 @@ class Trainer:
         self.net.load_state_dict(motor.net.state_dict())
 
     def _resume(self) -> None:
-        st = self.state_dir
-        if not (st / "state.json").exists():
+        # a kill may have landed inside a save: take the newest complete copies back first
+        recover_folder(self.out / "checkpoint", checkpoint_complete)
+        st = recover_folder(self.state_dir, _state_complete)
+        if st is None:
             return
         meta = json.loads((st / "state.json").read_text())
         tensors = load_file(str(st / "state.safetensors"))
@@ -171,28 +173,29 @@ class Trainer:
         torch.set_rng_state(tensors["rng.torch"])
         self.step = meta["step"]
         if self.rank == 0:
+            _drop_logged_after(self.out / "metrics.jsonl", self.step)  # those steps are trained again
             print(f"resumed from {st} at step {self.step}", flush=True)
 
     def save_state(self) -> None:
+        """The training state, then the checkpoint, each swapped in whole (io/atomic.py): a kill at
+        any instant leaves a complete state to resume from and a complete checkpoint."""
         if self.rank != 0:
             return
-        st = self.state_dir
-        tmp = self.out / "train_state.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
         opt_t, opt_meta = _flatten_optimizer(self.opt)
         tensors = {**{f"net.{k}": v for k, v in self.net.state_dict().items()},
                    **{f"ema.{k}": v for k, v in self.ema.shadow.items()}, **opt_t,
                    "rng.data": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
-        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / "state.safetensors"))
-        (tmp / "state.json").write_text(json.dumps({"step": self.step, "optimizer": opt_meta}))
-        if st.exists():
-            shutil.rmtree(st)
-        tmp.rename(st)
+
+        def fill(tmp: Path) -> None:
+            save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / "state.safetensors"))
+            (tmp / "state.json").write_text(json.dumps({"step": self.step, "optimizer": opt_meta}))  # last: marks it complete
+
+        replace_folder(self.state_dir, fill, _state_complete)
         self.export(self.out / "checkpoint")
 
     def export(self, folder: Path, card: str | None = None, extra: dict | None = None) -> Path:
-        ema_net = Denoiser(self.cfg.model)
+        with torch.random.fork_rng():  # building the EMA network draws random init: not from the training's stream
+            ema_net = Denoiser(self.cfg.model)
         ema_net.load_state_dict(self.ema.shadow)
         info = {"name": self.cfg.name, "licence": self.cfg.licence, "trained_steps": self.step,
                 "training_data": [str(p.name) for p in self.cache_paths], "train_config": _jsonable(asdict(self.cfg)),
@@ -272,6 +275,31 @@ class Trainer:
         return history
 
 
+def _state_complete(folder: Path) -> bool:
+    """A training state whose files were all written (state.json is written last)."""
+    try:
+        json.loads((folder / "state.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return (folder / "state.safetensors").exists()
+
+
+def _drop_logged_after(log: Path, step: int) -> None:
+    """Keep the metric lines up to `step`: a resumed run logs the later ones again."""
+    if not log.exists():
+        return
+    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+    keep = []
+    for ln in lines:
+        try:
+            if json.loads(ln)["step"] <= step:
+                keep.append(ln)
+        except (ValueError, KeyError):
+            pass  # a line cut by the kill
+    if len(keep) != len(lines):
+        write_file(log, lambda tmp: tmp.write_text("".join(k + "\n" for k in keep)))
+
+
 def _jsonable(d):
     if isinstance(d, dict):
         return {k: _jsonable(v) for k, v in d.items()}
@@ -297,7 +325,5 @@ def plot_losses(log_path: Path, png: Path) -> None:
     ax.legend()
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = png.with_name(png.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
+    write_file(png, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
     plt.close(fig)
-    tmp.replace(png)
