@@ -264,3 +264,49 @@ def test_headless_export_is_one_body_on_the_avatars_bones(tmp_path):
             states, betas = torch.from_numpy(z["states"]).double(), torch.from_numpy(z["betas"])
         assert len(states) == 60 and torch.equal(betas, shape if shape is not None else torch.zeros(SHAPE_DIM))
         assert float(body_mismatch(states, rest_offsets(shape, torch.float64)).max()) < 1e-3
+
+
+def test_a_foreign_web_page_cannot_drive_the_server(tmp_path):
+    """Cross-site WebSocket hijacking and DNS rebinding: a page of another site (its Origin) or
+    reached under a foreign Host name is refused; the studio's own page, programs that send no
+    Origin, and a foreign page that knows the token are let in."""
+    import aiohttp
+    world = World(tiny_motor(tmp_path), seed=0)
+    r = Running(world)
+    base = f"http://127.0.0.1:{r.port}"
+
+    async def probe(path, headers, token=None):
+        url = f"{r.url if path == '/ws' else base + path}" + (f"?token={token}" if token else "")
+        async with aiohttp.ClientSession() as s:
+            if path == "/ws":
+                try:
+                    async with s.ws_connect(url, headers=headers) as ws:
+                        await ws.send_str(json.dumps({"type": "spawn"}))
+                        return 101
+                except aiohttp.WSServerHandshakeError as e:
+                    return e.status
+            async with s.get(url, headers=headers) as resp:
+                return resp.status
+
+    def status(path, headers, token=None):
+        return asyncio.run(probe(path, headers, token))
+
+    try:
+        before = len(world.crowd)
+        assert status("/ws", {"Origin": "http://evil.example"}) == 403
+        assert status("/api/events", {"Origin": "http://evil.example"}) == 403
+        assert status("/api/info", {"Host": "evil.example"}) == 403  # DNS rebinding: a foreign name for our address
+        assert status("/ws", {"Host": f"attacker.example:{r.port}"}) == 403
+        assert len(world.crowd) == before  # nothing was applied
+        assert status("/ws", {"Origin": base}) == 101  # the studio's own page
+        assert status("/ws", {"Origin": f"http://localhost:{r.port}", "Host": f"localhost:{r.port}"}) == 101
+        assert status("/ws", {}) == 101 and status("/api/info", {}) == 200  # programs send no Origin
+    finally:
+        r.stop()
+    with_token = Running(World(tiny_motor(tmp_path), seed=0), token="s3cret")
+    try:
+        r = with_token
+        assert status("/ws", {"Origin": "http://evil.example"}) == 403
+        assert status("/ws", {"Origin": "http://evil.example"}, token="s3cret") == 101
+    finally:
+        with_token.stop()

@@ -59,7 +59,7 @@ class Server:
         self.clients: set[Client] = set()
         self.running = False
         self.fps_measured = 0.0
-        self.app = web.Application()
+        self.app = web.Application(middlewares=[self._same_site])
         self.app.add_routes([
             web.get("/", self.index), web.get("/ws", self.websocket), web.get("/api/info", self.info),
             web.get("/api/record", self.record), web.get("/api/events", self.events),
@@ -69,6 +69,24 @@ class Server:
         self.app.on_cleanup.append(self._stop_background)
 
     # ------------------------------------------------------------ http
+    @web.middleware
+    async def _same_site(self, request, handler):
+        """No web page of another site drives this server: a request whose Origin is not the
+        server's own (the studio's) or whose Host is not a name of this server (DNS rebinding) is
+        refused unless it carries the token. Programs (engines, the Python client) send no
+        Origin and pass."""
+        if not (self.token and request.query.get("token") == self.token):
+            host = request.host.rsplit(":", 1)[0].strip("[]") if request.host else ""
+            if not (is_loopback(host) or host == self.host):
+                log.warning("refused a request for foreign Host %r", request.host)
+                raise web.HTTPForbidden(text=f"Host {request.host!r} is not this server; open it as http://127.0.0.1:{self.port}/")
+            origin = request.headers.get("Origin")
+            if origin is not None and origin not in (f"http://{request.host}", f"https://{request.host}"):
+                log.warning("refused a request from foreign Origin %r", origin)
+                raise web.HTTPForbidden(text=f"requests from {origin} are refused: only the studio's own page "
+                                             "(or a client with the token) may drive this server")
+        return await handler(request)
+
     async def index(self, request):
         page = STATIC / "index.html"
         if not (STATIC / "dist" / "studio.js").exists():
