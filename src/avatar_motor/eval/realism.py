@@ -13,7 +13,7 @@ from ..body import rotations as rot
 from ..body.skeleton import forward_kinematics, rest_offsets
 from ..data.cache import MotionCache, is_held_out
 from ..data.dataset import SegmentConfig, SegmentDataset
-from ..body.motion_state import FPS, SLICES, body_joints, body_mismatch, finite_velocities, joints_of, unpack
+from ..body.motion_state import FPS, SLICES, body_joints, finite_velocities, joints_of, unpack
 from ..model.checkpoint import Motor
 from ..runtime.crowd import Crowd, RuntimeConfig
 from . import metrics as M
@@ -73,10 +73,10 @@ class BodyCheck:
         self.dist: list[torch.Tensor] = []
         self.lowest = float("inf")
 
-    def add(self, X: torch.Tensor, shapes: torch.Tensor) -> None:
-        off = rest_offsets(shapes, torch.float64)[:, None]
-        self.dist.append(body_mismatch(X.double(), off).flatten().float())
-        self.lowest = min(self.lowest, float(body_joints(X.double(), off)[..., 1].min()))
+    def add(self, X: torch.Tensor, J: torch.Tensor) -> None:
+        """X (B, T, 267) as emitted; J (B, T, 22, 3) FK of its rotations (`body_joints`)."""
+        self.dist.append((joints_of(X).double() - J).norm(dim=-1).flatten().float())
+        self.lowest = min(self.lowest, float(J[..., 1].min()))
 
     def summary(self) -> dict:
         d = torch.cat(self.dist)
@@ -85,10 +85,9 @@ class BodyCheck:
                 "lowest_joint_m": self.lowest}
 
 
-def exported(X: torch.Tensor, shapes: torch.Tensor) -> torch.Tensor:
-    """States (B, T, 267) whose joint locations and velocities are those of the exported body
-    (FK of the rotations on each shape): what every metric reads."""
-    J = body_joints(X.double(), rest_offsets(shapes, torch.float64)[:, None])
+def exported(X: torch.Tensor, J: torch.Tensor) -> torch.Tensor:
+    """States (B, T, 267) whose joint locations and velocities are those of the exported body J
+    (B, T, 22, 3), FK of X's rotations on each shape: what every metric reads."""
     out = X.clone()
     out[..., SLICES["joints"]] = J.reshape(*X.shape[:-1], 66).to(X.dtype)
     out[..., SLICES["velocities"]] = finite_velocities(J).reshape(*X.shape[:-1], 66).to(X.dtype)
@@ -116,9 +115,10 @@ def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int,
         segs.append(torch.stack([out[i] for i in ids]))
         n += 1
     X = torch.cat(segs, 1)[:, : frames + 1]
+    J = body_joints(X.double(), rest_offsets(shapes, torch.float64)[:, None])
     if check is not None:
-        check.add(X, shapes)
-    return exported(X, shapes)
+        check.add(X, J)
+    return exported(X, J)
 
 
 def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float = 8.0, seed: int = 0,

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..body import rotations as rot
+from .atomic import write_file
 
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
@@ -314,7 +315,6 @@ def format_bvh(b: BVH, precision: int = 6) -> str:
 
 def write_bvh(path: str | Path, b: BVH, precision: int = 6) -> None:
     """Write atomically (io/atomic.py)."""
-    from .atomic import write_file
     write_file(path, lambda tmp: tmp.write_text(format_bvh(b, precision)))
 
 

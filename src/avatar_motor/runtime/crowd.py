@@ -162,7 +162,6 @@ class Crowd:
         self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
         self._next_id = 0
-        self.frames_per_segment = motor.net.cfg.frames
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ avatars
@@ -174,8 +173,12 @@ class Crowd:
         state = validate_vector(state, STATE_DIM, "initial state")
         i = self._next_id
         self._next_id += 1
-        self.avatars[i] = AvatarState(i, state, shape, gen=torch.Generator().manual_seed(self.seed * 100003 + i))
+        self.avatars[i] = AvatarState(i, state, shape, gen=torch.Generator().manual_seed(self._noise_seed(i)))
         return i
+
+    def _noise_seed(self, i: int) -> int:
+        """Avatar i's own noise stream under the crowd's seed: a crowd and the same avatar alone agree."""
+        return self.seed * 100003 + i
 
     def remove(self, i: int) -> None:
         self._get(i)
@@ -232,7 +235,7 @@ class Crowd:
         a continuation is reproducible from here. Frames already queued are kept."""
         self.seed = seed
         for i, a in self.avatars.items():
-            a.gen.manual_seed(seed * 100003 + i)
+            a.gen.manual_seed(self._noise_seed(i))
 
     def interrupt(self, i: int) -> None:
         """Drop the queued frames so the next segment starts from the frame shown now; segments

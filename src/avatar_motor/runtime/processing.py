@@ -72,13 +72,12 @@ def _above_ground(d: torch.Tensor, start: torch.Tensor, bone: torch.Tensor) -> t
 def _pinned(start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
     """Foot and ankle goals (B, N, 2, 3) moved horizontally, frame by frame, toward where the
     foot stood in the frame before (start (B, 3) before the first) by how planted the foot is
-    (foot_contacts' ramps, on the goals themselves): the ankle moves with its foot.
+    (`_planted`, on the goals themselves): the ankle moves with its foot.
     The recurrence held_t = goal_t + w_t (held_{t-1} - goal_t) is unrolled into one weighted sum:
     held_t = sum_k (1 - w_k) prod_{k<i<=t} w_i goal_k + prod_{i<=t} w_i start."""
     B, N = goal.shape[:2]
     P = torch.cat((start[:, None], goal[:, :, 0]), 1)  # (B, N + 1, 3)
-    h, v = P[:, 1:, 1], (P[:, 1:] - P[:, :-1])[..., [0, 2]].norm(dim=-1) * FPS
-    w = _ramp(h, *CONTACT_HEIGHT) * _ramp(v, *CONTACT_SPEED)  # (B, N)
+    w = _planted(P)  # (B, N)
     w0 = torch.cat((torch.ones_like(w[:, :1]), w), 1)  # (B, N + 1): frame 0 is the start, held as is
     later = torch.arange(N + 1)[:, None] > torch.arange(N + 1)[None, :]  # t > k
     carry = torch.where(later, w0[:, :, None], torch.ones(1, dtype=w.dtype)).cumprod(1)  # prod_{k<i<=t} w_i
@@ -217,15 +216,19 @@ def _ramp(x: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
     return ((hi - x) / (hi - lo)).clamp(0.0, 1.0)
 
 
-def foot_contacts(x0: torch.Tensor, seg: torch.Tensor, height=CONTACT_HEIGHT, speed=CONTACT_SPEED):
-    """How planted each foot is in each frame of seg (B, N, 267) after x0 (B, 267): 1 when low and
-    slow, ramping linearly to 0 between the bounds of `height` (m above ground) and `speed` (m/s).
+def _planted(P: torch.Tensor) -> torch.Tensor:
+    """How planted a foot joint is in each frame of its positions P (B, N + 1, ..., 3), the first
+    being the frame before: 1 when low and slow, ramping linearly to 0 between the bounds of
+    CONTACT_HEIGHT (m above ground) and CONTACT_SPEED (m/s). Returns (B, N, ...)."""
+    h, v = P[:, 1:, ..., 1], (P[:, 1:] - P[:, :-1])[..., [0, 2]].norm(dim=-1) * FPS
+    return _ramp(h, *CONTACT_HEIGHT) * _ramp(v, *CONTACT_SPEED)
+
+
+def foot_contacts(x0: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
+    """How planted each foot is in each frame of seg (B, N, 267) after x0 (B, 267) (`_planted`).
     Returns the contacts (B, N, 2)."""
     feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]
-    P = torch.cat((unpack(x0).joints[:, None], unpack(seg).joints), 1)[:, :, feet]  # (B, N + 1, 2, 3)
-    step = (P[:, 1:] - P[:, :-1])[..., [0, 2]]
-    h, v = P[:, 1:, :, 1], step.norm(dim=-1) * FPS
-    return _ramp(h, *height) * _ramp(v, *speed)
+    return _planted(torch.cat((joints_of(x0)[:, None], joints_of(seg)), 1)[:, :, feet])
 
 
 def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = None,
