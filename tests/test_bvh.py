@@ -1,3 +1,6 @@
+import re
+import subprocess
+import sys
 import tarfile
 import zipfile
 from pathlib import Path
@@ -127,8 +130,10 @@ def test_import_skips_bad_files_with_reasons_and_never_half_writes(tmp_path):
     empty = tmp_path / "nothing"
     empty.mkdir()
     (empty / "broken.bvh").write_text("garbage")
-    with pytest.raises(ValueError, match="no clip could be imported"):
+    with pytest.raises(FileExistsError, match="--replace"):  # another source under the same name
         import_motion(empty, name=path.stem, progress=False)
+    with pytest.raises(ValueError, match="no clip could be imported"):
+        import_motion(empty, name=path.stem, progress=False, replace=True)
     assert path.read_bytes() == before
     assert not [p for p in path.parent.iterdir() if ".tmp" in p.name]
 
@@ -177,3 +182,71 @@ def test_cache_of_an_older_importer_is_named_and_converted_anew(tmp_path):
     _, s = import_motion(src, progress=False, workers=1)
     assert s["new"] == 1 and s["unchanged"] == 0
     assert MotionCache.load(path).meta["version"] == c.meta["version"] + 1
+
+
+def _run_import(args: list[str], env_cache: Path) -> subprocess.Popen:
+    import os
+    return subprocess.Popen([sys.executable, "-c", "import resource, sys\nfrom avatar_motor.cli import main\n"
+                             "rc = main(sys.argv[1:])\n"
+                             "print('peak_kb', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+                             "resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, flush=True)\nsys.exit(rc)", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "AVATAR_MOTOR_CACHE": str(env_cache)})
+
+
+def test_an_archive_bomb_fails_clearly_within_bounded_memory(tmp_path):
+    """1 GB of zeros in a 1 MB zip once peaked at 4.7 GB; 100 MB of newlines after a valid clip
+    was parsed at 3.4 GB. Members are size-checked before reading and BVH motion is read lazily."""
+    import zipfile
+    bomb = tmp_path / "bomb.zip"
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zf, zf.open("big.bvh", "w", force_zip64=True) as f:
+        chunk = bytes(1 << 24)
+        for _ in range(64):  # 1 GiB
+            f.write(chunk)
+    assert bomb.stat().st_size < 2 << 20
+    p = _run_import(["data", "import", str(bomb), "--workers", "2"], tmp_path / "c")
+    out, err = p.communicate(timeout=300)
+    assert p.returncode == 2 and "larger than 256 MB" in err and "Split the capture" in err, err
+    peak_mb = max(int(x) for x in out.split()[1:]) / 1024
+    print(f"archive bomb: refused, peak {peak_mb:.0f} MB")
+    assert peak_mb < 1024
+    # a valid clip followed by 100 MB of blank lines: nothing past the last frame is read
+    clip = (Path(__file__).parent / "fixtures" / "walk_lafan1.bvh").read_bytes()
+    padded = tmp_path / "padded"
+    padded.mkdir()
+    with open(padded / "walk.bvh", "wb") as f:
+        f.write(clip + b"\n" * (100 << 20))
+    p = _run_import(["data", "import", str(padded), "--workers", "1"], tmp_path / "c")
+    out, err = p.communicate(timeout=300)
+    peak_mb = max(int(x) for x in out.split()[-2:]) / 1024
+    print(f"100 MB of newlines after a clip: imported, peak {peak_mb:.0f} MB")
+    assert p.returncode == 0 and "1 clips" in out and peak_mb < 1024, (out, err)
+    assert b"\x00" not in clip
+    with pytest.raises(BVHError, match="more than"):  # a declared size beyond the limit, before allocating
+        parse_bvh(re.sub(r"Frames:\s*\d+", "Frames: 999999999", clip.decode()))
+
+
+def test_killing_an_import_leaves_no_worker_behind(tmp_path):
+    import os
+    import signal
+    import time
+    src = tmp_path / "many"
+    src.mkdir()
+    clip = (Path(__file__).parent / "fixtures" / "walk_lafan1.bvh").read_bytes()
+    for k in range(400):
+        (src / f"c{k:03d}.bvh").write_bytes(clip)
+    p = _run_import(["data", "import", str(src), "--workers", "2"], tmp_path / "c")
+    children = []
+    end = time.time() + 60
+    while time.time() < end and len(children) < 2:
+        time.sleep(0.2)
+        children = [int(c) for c in Path(f"/proc/{p.pid}/task/{p.pid}/children").read_text().split()]
+    assert len(children) >= 2, "the import did not start its workers"
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    end = time.time() + 10
+    while time.time() < end and any(Path(f"/proc/{c}").exists() and "Z" not in Path(f"/proc/{c}/stat").read_text().split(")")[1][:3]
+                                    for c in children):
+        time.sleep(0.2)
+    alive = [c for c in children if Path(f"/proc/{c}").exists() and "Z" not in Path(f"/proc/{c}/stat").read_text().split(")")[1][:3]]
+    assert not alive, f"workers {alive} outlived the killed import"

@@ -112,6 +112,20 @@ def test_checkpoint_roundtrip_and_errors(tmp_path):
     (mis / "config.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="not valid JSON"):
         load_checkpoint(mis)
+    # every field checked before anything is allocated (a 1e6-frame network would take gigabytes)
+    good = json.loads((tmp_path / "ck" / "config.json").read_text())
+    for change, message in ((lambda c: [c], "JSON object"), (lambda c: {**c, "denoiser": [1]}, "object of fields"),
+                            (lambda c: {**c, "denoiser": {**c["denoiser"], "heads": 7}}, "multiple of 'heads'"),
+                            (lambda c: {**c, "denoiser": {**c["denoiser"], "frames": 1e6}}, "'frames' must be an integer"),
+                            (lambda c: {**c, "denoiser": {**c["denoiser"], "width": 4096, "depth": 64}}, "beyond what"),
+                            (lambda c: {**c, "denoiser": {**c["denoiser"], "dropout": "x"}}, "'dropout'"),
+                            (lambda c: {**c, "denoiser": {**c["denoiser"], "wings": 2}}, "unknown denoiser fields"),
+                            (lambda c: {**c, "diffusion": {"train_steps": -5}}, "train_steps"),
+                            (lambda c: {**c, "normalizer": {"mean": [float("nan")] * len(c["normalizer"]["mean"]),
+                                                            "std": c["normalizer"]["std"]}}, "finite means")):
+        (mis / "config.json").write_text(json.dumps(change(good)))
+        with pytest.raises(CheckpointError, match=message):
+            load_checkpoint(mis)
 
 
 @pytest.fixture

@@ -500,3 +500,79 @@ def test_a_standing_body_turns_within_the_rate_and_foot_locking_keeps_the_turn()
     assert torch.allclose(kept[0], added[0, -1], atol=1e-9)  # the yaw lock does not undo the turn
     undone = _wrapped(facing_yaw(joints_of(lock_feet(x0, out, yaw=True)[:, -1])) - facing_yaw(joints_of(seg[:, -1])))
     assert float(undone[0].abs()) < 1e-6  # (without `turned` it would)
+
+
+def test_commands_faster_than_segments_coalesce(motor):
+    """A goal stream (a gamepad stick) must not cut the queue at every message: a goal within the
+    recut tolerance only updates the controls; a real change keeps `keep_on_cut` frames (shown while
+    the new segment is made) and cuts once; changes while that segment is made wait for it."""
+    crowd = Crowd(motor, seed=0)
+    crowd.keep_on_cut = 2
+    i = crowd.spawn()
+    a = crowd.avatars[i]
+    crowd.set_goal(i, (0.0, 1.2))
+    crowd.refill(8)
+    assert a.epoch == 1 and not a.regenerating and len(a.queue) == 15
+    head = list(a.queue)
+
+    def same(q, h):
+        return len(q) == len(h) and all(x is y for x, y in zip(q, h))
+    for k in range(60):  # jitter of +-0.05 m/s: no cut, the latest goal is used by the next segment
+        crowd.set_goal(i, (0.05 * (-1) ** k, 1.2 - 0.05 * (-1) ** k))
+    assert a.epoch == 1 and same(a.queue, head) and torch.allclose(a.v_goal, torch.tensor([-0.05, 0.0, 1.25]))
+    crowd.set_goal(i, (1.2, 0.0))  # a real change: two frames kept, the rest cut
+    assert a.epoch == 2 and a.regenerating and same(a.queue, head[:2])
+    crowd.set_goal(i, (-1.2, 0.0))  # while that segment is made: marked, no second cut
+    crowd.push(i, "head", (0.0, 0.0, 1.0))
+    assert a.epoch == 2 and a.recut and same(a.queue, head[:2])
+    job = crowd.prepare(8)
+    assert torch.equal(job.v_goal[0], a.v_goal) and bool(job.impulse[0])  # it uses the latest controls
+    crowd.set_goal(i, (0.0, -1.2))  # changed again after the snapshot
+    crowd.commit(job, crowd.compute(job))
+    assert a.epoch == 3 and a.regenerating and not a.recut and len(a.queue) == 2  # committed, then cut once more
+    job = crowd.prepare(8)
+    crowd.commit(job, crowd.compute(job))
+    assert a.epoch == 3 and not a.regenerating and len(a.queue) == 17
+    crowd.set_goal(i, (0.0, -1.2))  # the same goal again: nothing to do
+    assert a.epoch == 3 and len(a.queue) == 17
+    # offline (keep_on_cut 0) a command shows at the next frame, as before
+    crowd.keep_on_cut = 0
+    crowd.set_goal(i, None)
+    assert a.queue == [] and a.epoch == 4
+
+
+def test_a_broken_model_is_never_streamed_the_guard_stands_the_avatar_up(tmp_path, caplog):
+    """Weights scaled x1000 once put a pelvis at 352 km with no warning: the physical guard refuses
+    such a segment, resets that avatar where it stood (the others go on) and says so, once."""
+    import logging
+
+    from avatar_motor.runtime.processing import physical_faults
+    good = tiny_motor(tmp_path)
+    broken = tiny_motor(tmp_path / "b")
+    with torch.no_grad():
+        for p in broken.net.parameters():
+            p.mul_(1000.0)
+    crowd = Crowd(broken, seed=0)
+    i = crowd.spawn(position=(1.0, 2.0))
+    start = crowd.state(i).clone()
+    with caplog.at_level(logging.WARNING, logger="avatar_motor.runtime"):
+        for _ in range(40):
+            x = crowd.next_frames()[i]
+            assert torch.isfinite(x).all() and 0.5 < float(x[1]) < 1.5 and abs(float(x[0]) - 1.0) < 1e-4
+    assert crowd.guard_resets >= 20 and torch.equal(crowd.state(i), start)
+    assert sum("not a physical body" in r.getMessage() for r in caplog.records) == 2  # the 1st and 10th, not 20+ lines
+    # each invariant of the guard on its own, on a good segment made bad one way at a time
+    c = Crowd(good, seed=0)
+    j = c.spawn()
+    seg = c.step_segment()[j].double()[None]
+    x0, off = seg[:, 0].clone(), rest_offsets(torch.zeros(1, SHAPE_DIM), torch.float64)
+    seg = seg[:, 1:]
+    assert physical_faults(x0, seg, off) == [None]
+    J = SLICES["joints"].start
+    for edit, why in ((lambda s: s.__setitem__((0, 3, 5), float("nan")), "non-finite"),
+                      (lambda s: s[0, :, J + 1].add_(5.0), "pelvis height"),
+                      (lambda s: s[0, -1, J:J + 66:3].add_(20.0), "pelvis moved"),
+                      (lambda s: s[0, 2, J + 3 * 15:J + 3 * 15 + 3].add_(0.3), "bone")):
+        bad = seg.clone()
+        edit(bad)
+        assert why in physical_faults(x0, bad, off)[0]

@@ -31,7 +31,8 @@ def _data_import(a) -> int:
     from .data.retarget import load_mapping_file
 
     mapping = load_mapping_file(a.mapping) if a.mapping else None
-    _, summary = import_motion(a.path, name=a.name, cache_dir=a.cache_dir, workers=a.workers, mapping=mapping, unit=a.unit)
+    _, summary = import_motion(a.path, name=a.name, cache_dir=a.cache_dir, workers=a.workers, mapping=mapping, unit=a.unit,
+                               replace=a.replace)
     print(format_summary(summary))
     return 0
 
@@ -264,21 +265,25 @@ def _serve(a) -> int:
     import torch
 
     from .model.checkpoint import load_checkpoint
-    from .serve.world import World
+    from .serve.world import MAX_AVATARS, World
 
     motor = load_checkpoint(a.model)
     if a.threads:
         torch.set_num_threads(a.threads)
     world = World(motor, _runtime_config(a), a.seed, adaptor=_load_adaptor(a, motor))
-    if not 0 <= a.avatars <= 64:
-        raise ValueError("--avatars must be 0..64")
+    if not 0 <= a.avatars <= MAX_AVATARS:
+        raise ValueError(f"--avatars must be 0..{MAX_AVATARS}")
+    for name in ("max_avatars", "avatars_per_client"):
+        v = getattr(a, name)
+        if v is not None and not 1 <= v <= MAX_AVATARS:
+            raise ValueError(f"--{name.replace('_', '-')} must be 1..{MAX_AVATARS}, got {v}")
     for k in range(a.avatars):
         world.apply({"type": "spawn", "position": [1.2 * k - 0.6 * (a.avatars - 1), 0.0]}, log=False)
     if a.headless:
         return _serve_headless(a, world)
     from .serve.server import Server
 
-    server = Server(world, a.host, a.port, a.token)
+    server = Server(world, a.host, a.port, a.token, max_avatars=a.max_avatars, per_client=a.avatars_per_client)
     if a.open_browser:
         import threading
         import webbrowser
@@ -305,6 +310,10 @@ def _serve_headless(a, world) -> int:
         for e in events:
             P.validate_command(e["cmd"])
     frames = int(a.seconds * 30) if a.seconds else int(script.get("frames", 300))
+    keep = script.get("keep_on_cut", world.crowd.keep_on_cut)  # as the recorded server cut its queues
+    if not (isinstance(keep, int) and 0 <= keep <= 15):
+        raise ValueError(f"--script {a.script}: keep_on_cut must be an integer 0..15, got {keep!r}")
+    world.crowd.keep_on_cut = keep
     world.run_offline(frames, script.get("events", []))
     out = Path(a.export or "out/headless")
     out.mkdir(parents=True, exist_ok=True)
@@ -493,6 +502,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--workers", type=int)
     i.add_argument("--mapping", help="JSON file {canonical joint: source joint} for unknown skeletons")
     i.add_argument("--unit", choices=["m", "dm", "cm", "mm", "in", "ft"], help="override unit detection")
+    i.add_argument("--replace", action="store_true", help="replace a cache of the same name imported from another source")
     i.set_defaults(func=_data_import)
     sh = d.add_parser("show", help="draw a stick-figure contact sheet of a cached clip")
     sh.add_argument("clip", help="clip file name (or part of it), e.g. dataset-1_walk_normal_001")
@@ -545,6 +555,9 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--host", default="127.0.0.1")
     sv.add_argument("--port", type=int, default=8765)
     sv.add_argument("--token", help="required when --host is not a loopback address")
+    sv.add_argument("--max-avatars", type=int, help="the world's cap (default: what this machine keeps in "
+                    "real time, measured at start-up; at most 64)")
+    sv.add_argument("--avatars-per-client", type=int, help="avatars one client may spawn (default: half the cap)")
     sv.add_argument("--seed", type=int, default=0)
     _add_runtime_args(sv)
     sv.add_argument("--threads", type=int, help="torch threads for generation")
@@ -631,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, KeyError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError, KeyError) as e:
         print(f"avatar-motor: error: {e}", file=sys.stderr)
         return 2
 

@@ -16,8 +16,16 @@ import time
 from queue import Empty, Queue
 
 import aiohttp
+import numpy as np
 
 from .serve.protocol import decode_frame_binary
+
+
+def _frame_from_json(m: dict) -> dict:
+    """A JSON frame in the form binary frames decode to, so both formats read alike."""
+    return {"frame": m["frame"], "avatars": {a["id"]: {"positions": np.asarray(a["positions"], dtype=np.float32),
+                                                       "rotations": np.asarray(a["rotations"], dtype=np.float32)}
+                                             for a in m["avatars"]}}
 
 
 class Client:
@@ -81,7 +89,10 @@ class Client:
                 self.frames_q.put(decode_frame_binary(msg.data))
             elif msg.type == aiohttp.WSMsgType.TEXT:
                 m = json.loads(msg.data)
-                (self.frames_q if m.get("type") == "frame" else self.messages).put(m)
+                if m.get("type") == "frame":
+                    self.frames_q.put(_frame_from_json(m))
+                else:
+                    self.messages.put(m)
 
     async def _close(self) -> None:
         await self._ws.close()
@@ -120,7 +131,8 @@ class Client:
         raise TimeoutError("no reply from the server")
 
     def frames(self, n: int):
-        """Yield the next n frames: {'frame': k, 'avatars': {id: {'positions', 'rotations'}}}."""
+        """Yield the next n frames, binary or JSON alike: {'frame': k, 'avatars': {id: {'positions':
+        (22, 3) float32 array, 'rotations': (22, 4) float32 array x, y, z, w}}}."""
         for _ in range(n):
             yield self.frames_q.get(timeout=self.timeout)
 

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import write_file
+from ..io import bvh as B
 from ..io.bvh import BVHError, read_bvh
 from .retarget import resample, retarget
 
@@ -106,32 +107,51 @@ class MotionCache:
         self.path = write_file(path, write)
 
 
+def _bounded(key: str, size: int, read) -> bytes:
+    """A member's bytes, refused (BVHError) above io.bvh.MAX_BYTES: by its declared size before
+    anything is read, and by what it actually yields (a declared size can lie)."""
+    if size > B.MAX_BYTES:
+        raise BVHError(f"{key}: is {size >> 20} MB, larger than {B.MAX_BYTES >> 20} MB. Split the capture into shorter BVH files")
+    data = read(B.MAX_BYTES + 1)
+    if len(data) > B.MAX_BYTES:
+        raise BVHError(f"{key}: is larger than {B.MAX_BYTES >> 20} MB. Split the capture into shorter BVH files")
+    return data
+
+
 def _iter_sources(src: Path):
-    """Yield (key, loader) for each BVH in a folder, a file, or a .tar(.xz/.gz)/.zip archive.
-    Archive members are read straight from the archive."""
+    """Yield (key, stamp, load) for each BVH in a folder, a file, or a .tar(.xz/.gz)/.zip archive.
+    Archive members are read straight from the archive, one at a time, when load() is called;
+    load raises BVHError for a member above the size limit."""
     name = src.name.lower()
     if src.is_dir():
         for p in sorted(src.rglob("*")):
             if p.suffix.lower() == ".bvh" and p.is_file():
                 st = p.stat()
-                yield str(p.relative_to(src)), f"{st.st_size}:{int(st.st_mtime)}", (lambda p=p: p.read_bytes())
+                yield str(p.relative_to(src)), f"{st.st_size}:{int(st.st_mtime)}", (lambda p=p: read_file_bounded(p))
     elif name.endswith((".tar", ".tar.xz", ".txz", ".tar.gz", ".tgz", ".tar.bz2")):
         with tarfile.open(src) as tf:
             for mem in tf:
                 if mem.isfile() and mem.name.lower().endswith(".bvh"):
-                    data = tf.extractfile(mem).read()
-                    yield mem.name, f"{mem.size}:{int(mem.mtime)}", (lambda d=data: d)
+                    yield mem.name, f"{mem.size}:{int(mem.mtime)}", (
+                        lambda mem=mem: _bounded(mem.name, mem.size, tf.extractfile(mem).read))
     elif name.endswith(".zip"):
         with zipfile.ZipFile(src) as zf:
             for info in zf.infolist():
                 if info.filename.lower().endswith(".bvh"):
-                    data = zf.read(info)
-                    yield info.filename, f"{info.file_size}:{info.CRC}", (lambda d=data: d)
+                    def load(info=info):
+                        with zf.open(info) as f:
+                            return _bounded(info.filename, info.file_size, f.read)
+                    yield info.filename, f"{info.file_size}:{info.CRC}", load
     elif src.is_file():
         st = src.stat()
-        yield src.name, f"{st.st_size}:{int(st.st_mtime)}", (lambda: src.read_bytes())
+        yield src.name, f"{st.st_size}:{int(st.st_mtime)}", (lambda: read_file_bounded(src))
     else:
         raise FileNotFoundError(f"{src}: no such file, folder or archive. Pass a folder of BVH files, a .bvh, or a .tar.xz/.zip of them")
+
+
+def read_file_bounded(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        return _bounded(path.name, path.stat().st_size, f.read)
 
 
 def convert_clip(key: str, data: bytes, mapping: dict | None = None, unit: str | None = None):
@@ -164,9 +184,19 @@ class _InProcess:
         return f
 
 
-def _worker_init() -> None:
+def _worker_init(parent: int) -> None:
+    """parent: the importing process's pid (it may have died while this worker was starting)."""
+    import threading
+
     import torch
     torch.set_num_threads(1)  # one process per core already: more threads only contend
+
+    def watch():  # a killed import must not leave its workers behind (they would idle for minutes)
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 def _convert_job(args):
@@ -174,10 +204,15 @@ def _convert_job(args):
     return key, convert_clip(key, data, mapping, unit)
 
 
+MAX_PENDING_BYTES = 512 * 1024 * 1024  # member bytes read ahead of the workers at most
+
+
 def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Path | None = None,
                   workers: int | None = None, mapping: dict | None = None, unit: str | None = None,
-                  progress: bool = True) -> tuple[Path, dict]:
-    """Convert every BVH under `src` into the cache `<cache_dir>/<name>.npz` (incremental)."""
+                  progress: bool = True, replace: bool = False) -> tuple[Path, dict]:
+    """Convert every BVH under `src` into the cache `<cache_dir>/<name>.npz` (incremental: a
+    re-import of the same source converts only what changed). A cache of that name imported from
+    another source is refused unless `replace`."""
     from tqdm import tqdm
 
     src = Path(src)
@@ -196,6 +231,12 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
             old = MotionCache.load(path)
         except StaleCacheError:  # an older importer's conversion: every file is converted anew
             print(f"{path}: written by an older importer; converting every file again", flush=True)
+    source = str(src.resolve())
+    if old is not None and Path(old.meta.get("source", "")).resolve() != src.resolve():
+        if not replace:
+            raise FileExistsError(f"{path}: the cache {name!r} was imported from {old.meta.get('source')}; importing "
+                                  f"{src} would replace it. Pass --replace to do so, or --name to keep both")
+        old = None
     have = {c["key"]: (i, c) for i, c in enumerate(old.clips)} if old else {}
     t0 = time.time()
     kept, new_items, skipped, seen = [], [], [], set()
@@ -207,20 +248,25 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
             if key in have and have[key][1].get("stamp") == stamp:
                 kept.append(have[key][0])
                 continue
-            yield key, stamp, load()
+            try:
+                data = load()
+            except BVHError as e:
+                skipped.append({"key": key, "reason": str(e)})
+                continue
+            yield key, stamp, data
 
     stamps = {}
     # into a log file (not a terminal) a progress line every 10 s, not ten a second
     bar = tqdm(desc=f"import {name}", unit="clip", disable=not progress, mininterval=0.1 if sys.stderr.isatty() else 10)
     # spawn, not fork: a forked child of a process whose torch thread pool already ran can deadlock
-    pool = (ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init)
+    pool = (ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),))
             if workers > 1 else _InProcess())
     with pool:
-        pending = []
+        pending = []  # (future, bytes read for it)
 
-        def drain(limit):
-            while len(pending) > limit:
-                key, (res, meta) = pending.pop(0).result()
+        def drain(limit, byte_limit=MAX_PENDING_BYTES):
+            while len(pending) > limit or sum(n for _, n in pending) > byte_limit:
+                key, (res, meta) = pending.pop(0)[0].result()
                 bar.update(1)
                 if res is None:
                     skipped.append({"key": key, "reason": meta})
@@ -230,7 +276,8 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
 
         for key, stamp, data in jobs():
             stamps[key] = stamp
-            pending.append(pool.submit(_convert_job, (key, data, mapping, unit)))
+            pending.append((pool.submit(_convert_job, (key, data, mapping, unit)), len(data)))
+            del data
             drain(4 * workers)
         drain(0)
     bar.close()
@@ -245,7 +292,7 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
         raise ValueError(f"{src}: no clip could be imported ({len(skipped)} skipped"
                          + (f", first reason: {skipped[0]['reason']}" if skipped else ", no .bvh files found") + ")")
     lens = np.array([it[0][0].shape[0] for it in items], np.int64)
-    meta = {"version": CACHE_VERSION, "name": name, "source": str(src), "fps": 30.0,
+    meta = {"version": CACHE_VERSION, "name": name, "source": source, "fps": 30.0,
             "clips": [it[1] for it in items], "skipped": skipped}
     cache = MotionCache(np.concatenate([it[0][0] for it in items]), np.concatenate([it[0][1] for it in items]),
                         np.concatenate(([0], np.cumsum(lens)[:-1])), lens, meta)

@@ -129,8 +129,9 @@ class Normalizer:
     @staticmethod
     def from_dict(d: dict) -> "Normalizer":
         mean, std = torch.tensor(d["mean"], dtype=torch.float32), torch.tensor(d["std"], dtype=torch.float32)
-        if mean.shape != (STATE_DIM,) or std.shape != (STATE_DIM,) or (std <= 0).any():
-            raise ValueError(f"normalisation statistics must be {STATE_DIM} means and positive stds")
+        if (mean.shape != (STATE_DIM,) or std.shape != (STATE_DIM,) or (std <= 0).any()
+                or not (torch.isfinite(mean).all() and torch.isfinite(std).all())):
+            raise ValueError(f"normalisation statistics must be {STATE_DIM} finite means and positive stds")
         return Normalizer(mean, std)
 
     @staticmethod

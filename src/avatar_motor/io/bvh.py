@@ -21,6 +21,13 @@ from .atomic import write_file
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 MAX_JOINTS = 1024
+# sizes refused before anything is read or allocated: a BVH above MAX_BYTES (a 20-minute 120-fps
+# capture of 70 joints is ~250 MB; Bandai's clips are ~1 MB) or with a motion of more values than
+# MAX_VALUES (2 GB as float64); the hierarchy must end within MAX_HIERARCHY_BYTES
+MAX_BYTES = 256 * 1024 * 1024
+MAX_VALUES = 256 * 1024 * 1024
+MAX_HIERARCHY_BYTES = 4 * 1024 * 1024
+_MOTION = re.compile(r"^[ \t]*MOTION\b", re.M | re.I)
 MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-4, 1.0  # 10 kHz .. 1 Hz
 
 
@@ -117,9 +124,12 @@ def read_bvh(path_or_bytes: str | Path | bytes, name: str | None = None) -> BVH:
     else:
         src = name or str(path_or_bytes)
         try:
-            raw = Path(path_or_bytes).read_bytes()
+            with open(path_or_bytes, "rb") as f:
+                raw = f.read(MAX_BYTES + 1)
         except OSError as e:
             raise _fail(src, f"cannot be opened ({e.strerror})", "Check the path and permissions") from None
+    if len(raw) > MAX_BYTES:
+        raise _fail(src, f"is larger than {MAX_BYTES >> 20} MB", "Split the capture into shorter BVH files")
     if b"\x00" in raw[:4096]:
         raise _fail(src, "is binary, not a BVH text file", "Pass a BVH motion file (text starting with HIERARCHY)")
     try:
@@ -129,19 +139,27 @@ def read_bvh(path_or_bytes: str | Path | bytes, name: str | None = None) -> BVH:
     return parse_bvh(text, src)
 
 
+def _lines(text: str, pos: int):
+    """The lines of text from pos on, one at a time (a StringIO would copy the text at 4 bytes a character)."""
+    while pos < len(text):
+        end = text.find("\n", pos)
+        end = len(text) if end < 0 else end
+        yield text[pos:end]
+        pos = end + 1
+
+
 def parse_bvh(text: str, src: str = "<string>") -> BVH:
-    lines = text.splitlines()
+    found = _MOTION.search(text, 0, MAX_HIERARCHY_BYTES)
+    lines = text[:found.start() if found else MAX_HIERARCHY_BYTES].splitlines()  # the hierarchy only
     tokens: list[tuple[str, int]] = []
-    motion_line = None
     for ln, line in enumerate(lines, 1):
-        if line.strip().upper().startswith("MOTION"):
-            motion_line = ln
-            break
         tokens.extend((tok, ln) for tok in line.replace("{", " { ").replace("}", " } ").split())
     if not tokens or tokens[0][0].upper() != "HIERARCHY":
         raise _fail(src, "does not start with HIERARCHY", "Pass a BVH motion file; this one is empty or another format")
-    if motion_line is None:
-        raise _fail(src, "has no MOTION section (file truncated?)", "Re-export the complete file")
+    if found is None:
+        more = len(text) > MAX_HIERARCHY_BYTES
+        raise _fail(src, f"has no MOTION section{f' within its first {MAX_HIERARCHY_BYTES >> 20} MB' if more else ''} "
+                    "(file truncated?)", "Re-export the complete file")
 
     names: list[str] = []
     parents: list[int] = []
@@ -229,13 +247,16 @@ def parse_bvh(text: str, src: str = "<string>") -> BVH:
     if not names:
         raise _fail(src, "hierarchy has no joints", "Pass a BVH with a ROOT joint")
 
-    # ---- MOTION
-    body = lines[motion_line:]
+    # ---- MOTION, read lazily: the rows are streamed to the parser and nothing past the last
+    # declared frame is looked at (trailing garbage costs nothing)
+    nl = text.find("\n", found.end())  # the rest of the MOTION line is skipped
+    body = _lines(text, nl + 1 if nl >= 0 else len(text))
     header: dict[str, str] = {}
-    k = 0
-    while k < len(body) and len(header) < 2:
-        line = body[k].strip()
-        k += 1
+    while len(header) < 2:
+        line = next(body, None)
+        if line is None:
+            break
+        line = line.strip()
         if not line:
             continue
         head, _, val = line.partition(":")
@@ -252,14 +273,19 @@ def parse_bvh(text: str, src: str = "<string>") -> BVH:
     if not (MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME) or not math.isfinite(frame_time):
         raise _fail(src, f"frame time {frame_time} s is absurd (expected {MIN_FRAME_TIME}..{MAX_FRAME_TIME})", "Fix 'Frame Time:' (e.g. 0.0333333 for 30 fps)")
     n_ch = sum(len(c) for c in channels)
-    rows = [r for r in body[k:] if r.strip()]
-    if len(rows) < n_frames:
-        raise _fail(src, f"motion is truncated: header says {n_frames} frames, found {len(rows)}", "Re-export the file or fix 'Frames:'")
-    try:
-        motion = np.loadtxt(_io.StringIO("\n".join(rows[:n_frames])), dtype=np.float64, ndmin=2)
+    if n_frames * max(n_ch, 1) > MAX_VALUES:
+        raise _fail(src, f"declares {n_frames} frames of {n_ch} channels, more than {MAX_VALUES >> 20} M values",
+                    "Fix 'Frames:' or split the capture into shorter files")
+    if 2 * n_frames * max(n_ch, 1) > len(text) - found.end():  # every value needs a digit and a separator
+        raise _fail(src, f"motion is truncated: header says {n_frames} frames, the file is too short for them",
+                    "Re-export the file or fix 'Frames:'")
+    try:  # blank lines are skipped and not counted
+        motion = np.loadtxt(body, dtype=np.float64, ndmin=2, max_rows=n_frames)
     except ValueError as e:
         msg = str(e).splitlines()[0]
         raise _fail(src, f"motion data is not numeric or rows differ in length ({msg})", f"Every frame row needs {n_ch} numbers") from None
+    if len(motion) < n_frames:
+        raise _fail(src, f"motion is truncated: header says {n_frames} frames, found {len(motion)}", "Re-export the file or fix 'Frames:'")
     if motion.shape[1] != n_ch:
         raise _fail(src, f"wrong channel count: frames have {motion.shape[1]} values, hierarchy declares {n_ch}", "Fix the CHANNELS lines or the motion rows")
     if not np.isfinite(motion).all():

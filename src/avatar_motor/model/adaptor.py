@@ -47,6 +47,8 @@ class AdaptorConfig:
             raise ValueError(f"adaptor kind must be one of {KINDS}, got {self.kind!r}")
         if self.control not in CONTROLS:
             raise ValueError(f"adaptor control must be one of {CONTROLS}, got {self.control!r}")
+        if not isinstance(self.labels, list) or len(self.labels) > 1000 or not all(isinstance(x, str) for x in self.labels):
+            raise ValueError(f"adaptor labels must be a list of at most 1000 strings, got {str(self.labels)[:100]}")
         if self.control == "label" and len(self.labels) < 1:
             raise ValueError("a label adaptor needs at least one label")
 
@@ -187,6 +189,8 @@ def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = Non
         weights = load_file(str(folder / "adaptor.safetensors"))
     except Exception as e:  # noqa: BLE001 - any unreadable file gets the same clear message
         raise ValueError(f"{folder}: not a readable adaptor ({e}); pass a folder written by 'avatar-motor adapt'") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("adaptor"), dict):
+        raise ValueError(f"{folder}: adaptor.json must be an object with an 'adaptor' object; the adaptor is corrupt")
     if meta.get("format") != ADAPTOR_FORMAT:
         raise ValueError(f"{folder}: format {meta.get('format')!r} is not {ADAPTOR_FORMAT!r}")
     if base_name is not None and meta.get("base_model") != base_name:
@@ -194,7 +198,11 @@ def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = Non
     if "base_fingerprint" not in meta:
         warnings.warn(f"{folder}: the adaptor does not record which base weights it was trained on (older format); "
                       "if the base was retrained since, retrain the adaptor", stacklevel=2)
-    model = AdaptedDenoiser(base, AdaptorConfig(**meta["adaptor"]))  # takes the base's fingerprint
+    try:
+        acfg = AdaptorConfig(**meta["adaptor"])
+    except TypeError as e:
+        raise ValueError(f"{folder}: invalid adaptor config ({e}); pass a folder written by 'avatar-motor adapt'") from None
+    model = AdaptedDenoiser(base, acfg)  # takes the base's fingerprint
     if meta.get("base_fingerprint", model.base_fingerprint) != model.base_fingerprint:
         raise ValueError(f"{folder}: adaptor was trained on other weights of base model {meta.get('base_model')!r} "
                          "(the base was retrained since); retrain the adaptor with 'avatar-motor adapt' on this base")

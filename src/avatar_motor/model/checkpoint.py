@@ -6,7 +6,7 @@ schedule, the training data and the licence. Loading validates all of it and nam
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -89,22 +89,24 @@ def load_checkpoint(folder: str | Path) -> Motor:
         cfg = json.loads(cfg_path.read_text())
     except json.JSONDecodeError as e:
         raise CheckpointError(f"{cfg_path}: not valid JSON ({e}); the checkpoint is corrupt") from None
+    if not isinstance(cfg, dict):
+        raise CheckpointError(f"{cfg_path}: must hold a JSON object, got {type(cfg).__name__}; the checkpoint is corrupt")
     if cfg.get("format") != FORMAT:
         raise CheckpointError(f"{cfg_path}: format {cfg.get('format')!r} is not {FORMAT!r}; this is not an avatar-motor checkpoint")
     if cfg.get("state_layout") != STATE_LAYOUT or cfg.get("state_dim") != STATE_DIM:
         raise CheckpointError(f"{cfg_path}: motion-state layout {cfg.get('state_layout')} differs from this code's {STATE_LAYOUT}; "
                               "retrain or use a matching version")
-    known = {f.name for f in fields(DenoiserConfig)}
-    dcfg = cfg.get("denoiser", {})
-    unknown = set(dcfg) - known
-    if unknown:
-        raise CheckpointError(f"{cfg_path}: unknown denoiser fields {sorted(unknown)}")
+    diff = cfg.get("diffusion")
+    steps = diff.get("train_steps") if isinstance(diff, dict) else None
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10000:
+        raise CheckpointError(f"{cfg_path}: diffusion.train_steps must be an integer in [1, 10000], got {steps!r}")
     try:
-        with torch.random.fork_rng():  # its random init is overwritten: loading leaves the caller's random stream alone
-            net = Denoiser(DenoiserConfig(**dcfg))
+        dcfg = DenoiserConfig.from_dict(cfg.get("denoiser"))  # every field checked before allocation
         norm = Normalizer.from_dict(cfg["normalizer"])
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f"{cfg_path}: invalid config ({e})") from None
+    with torch.random.fork_rng():  # its random init is overwritten: loading leaves the caller's random stream alone
+        net = Denoiser(dcfg)
     try:
         weights = load_file(str(w_path))
     except Exception as e:  # safetensors raises several error types on garbage
@@ -123,4 +125,4 @@ def load_checkpoint(folder: str | Path) -> Motor:
             raise CheckpointError(f"{w_path}: tensor {k} contains NaN or infinite values")
     net.load_state_dict({k: v.float() for k, v in weights.items()})
     net.eval()
-    return Motor(net, norm, Diffusion(cfg["diffusion"]["train_steps"]), cfg, folder)
+    return Motor(net, norm, Diffusion(steps), cfg, folder)

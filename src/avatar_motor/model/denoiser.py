@@ -8,7 +8,7 @@ condition (adaLN-zero). Both keep the blocks in a ModuleList so adaptors can wra
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn.functional as F
@@ -30,6 +30,34 @@ class DenoiserConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d) -> "DenoiserConfig":
+        """Field by field, before anything is allocated: a config that is not an object, a field of
+        the wrong type or out of range, or a network too large for this project is refused with a
+        ValueError naming the field."""
+        if not isinstance(d, dict):
+            raise ValueError(f"the denoiser config must be an object of fields, got {type(d).__name__}")
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"unknown denoiser fields {unknown}")
+        cfg = cls(**d)
+        ints = {"state_dim": (STATE_DIM, STATE_DIM), "frames": (2, 240), "width": (8, 4096), "depth": (1, 64),
+                "heads": (1, 64), "ff": (8, 16384)}
+        for name, (lo, hi) in ints.items():
+            v = getattr(cfg, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"denoiser field {name!r} must be an integer in [{lo}, {hi}], got {v!r}")
+        if cfg.arch not in ("incontext", "adaln"):
+            raise ValueError(f"denoiser field 'arch' must be 'incontext' or 'adaln', got {cfg.arch!r}")
+        if isinstance(cfg.dropout, bool) or not isinstance(cfg.dropout, (int, float)) or not 0 <= cfg.dropout < 1:
+            raise ValueError(f"denoiser field 'dropout' must be a number in [0, 1), got {cfg.dropout!r}")
+        if cfg.width % cfg.heads:
+            raise ValueError(f"denoiser 'width' {cfg.width} must be a multiple of 'heads' {cfg.heads}")
+        params = cfg.depth * (4 * cfg.width ** 2 + 2 * cfg.width * cfg.ff)
+        if params > 2e8:
+            raise ValueError(f"a denoiser of about {params / 1e6:.0f} M parameters is beyond what this project runs")
+        return cfg
 
 
 def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:

@@ -12,6 +12,7 @@ dropped and its next segment starts from the frame it is showing now.
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -21,6 +22,7 @@ from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
 from ..body.motion_state import SLICES, STATE_DIM, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
+from .processing import physical_faults
 from .sampler import Sampler
 from .stages import DEFAULT_STAGES, SegmentBatch, StageContext, check_stages, run_stages
 
@@ -39,6 +41,7 @@ IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
     "forward_roll": (_joints("head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow"), (0.0, -0.5, 0.5)),
 }
 IMPULSE_SCALE = 30.0
+log = logging.getLogger("avatar_motor.runtime")
 
 
 @dataclass
@@ -90,6 +93,11 @@ class RuntimeConfig:
     path_weight: float = 0.0  # our L_path (centroid travels at the goal velocity)
     facing_weight: float = 0.2  # PRIMAL's L_facing on the hips of the last frame
     eta: float = 1.0  # 1 = DDPM ancestral sampling, 0 = DDIM
+    # a new goal this close to the one the latest segment was made for (m/s; rad of facing) only
+    # updates the controls, without cutting the queued frames: a gamepad stick's jitter must not
+    # regenerate (issue #26: a 30-60 Hz goal stream froze the avatar)
+    recut_velocity: float = 0.2
+    recut_facing: float = 0.2
 
 
 @dataclass
@@ -106,6 +114,10 @@ class AvatarState:
     target: torch.Tensor | None = None  # (2,) world x, z for a reaching adaptor
     near_target: bool = False  # came within face_target_beyond of it: no facing goal until 2x that away
     epoch: int = 0  # bumped by every interruption
+    # coalescing (see Crowd.cut): a cut's segment is being made; a further change waits for it
+    regenerating: bool = False
+    recut: bool = False  # some control changed while regenerating: cut again when it commits
+    planned: tuple = ()  # the controls the latest prepared segment was made with
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
 
     @property
@@ -163,6 +175,10 @@ class Crowd:
         self.avatars: dict[int, AvatarState] = {}
         self._next_id = 0
         self.timings: dict[str, float] = {}
+        # frames kept queued when a command cuts an avatar's queue (see _changed); a real-time
+        # server sets it to cover one segment's generation, offline it is 0
+        self.keep_on_cut = 0
+        self.guard_resets = 0  # segments refused by the physical guard (see commit)
 
     # ------------------------------------------------------------ avatars
     def spawn(self, state: torch.Tensor | None = None, shape: torch.Tensor | None = None,
@@ -238,11 +254,47 @@ class Crowd:
             a.gen.manual_seed(self._noise_seed(i))
 
     def interrupt(self, i: int) -> None:
-        """Drop the queued frames so the next segment starts from the frame shown now; segments
+        """Drop all queued frames so the next segment starts from the frame shown now; segments
         being generated for the old queue are discarded (epoch)."""
         a = self._get(i)
         a.queue.clear()
         a.epoch += 1
+        a.regenerating, a.recut = True, False
+
+    def _changed(self, a: AvatarState) -> None:
+        """A control of avatar a changed. If the queued frames no longer follow it, they are cut:
+        the first `keep_on_cut` frames stay (they are shown while the new segment is made, so a
+        real-time clock never stalls; 0 offline: the command shows at the next frame) and the next
+        segment continues from there. While a cut's segment is being made, further changes only
+        mark a recut, done when that segment commits: regeneration never runs faster than
+        segments are made, so commands arriving at any rate coalesce and frames keep flowing."""
+        if not self._differs(a):
+            return
+        if a.regenerating:
+            a.recut = True
+            return
+        del a.queue[self.keep_on_cut:]
+        a.epoch += 1
+        a.regenerating = True
+
+    def _plan(self, a: AvatarState) -> tuple:
+        return (a.v_goal, a.facing_goal, a.label, a.target, a.control_scale)
+
+    def _differs(self, a: AvatarState) -> bool:
+        """Whether a's controls differ from those its latest segment was made for beyond the
+        recut tolerances (an impulse always does)."""
+        if a.pending_velocity is not None or not a.planned:
+            return True
+        (v0, f0, label0, target0, scale0), (v, f, label, target, scale) = a.planned, self._plan(a)
+
+        def far(p, q, tol):
+            if p is None or q is None:
+                return (p is None) != (q is None)
+            return float((p - q).norm()) > tol
+
+        # facing vectors are unit: their distance is about the angle between them
+        return (far(v0, v, self.cfg.recut_velocity) or far(f0, f, self.cfg.recut_facing) or label0 != label
+                or far(target0, target, 0.1) or scale0 != scale)
 
     # ------------------------------------------------------------ controls
     def set_goal(self, i: int, velocity=None, facing=None) -> None:
@@ -256,7 +308,7 @@ class Crowd:
             f = validate_vector(facing, 2, "facing (fx, fz)") if facing is not None else v
             n = float(f.norm())
             a.facing_goal = torch.tensor([f[0] / n, 0.0, f[1] / n]) if n > 1e-6 else None
-        self.interrupt(i)
+        self._changed(a)
 
     def set_label(self, i: int, label: str | None, scale: float = 1.0) -> None:
         """Action label of the adaptor (None releases); scale 0 = base model, 1 = as trained, above 1
@@ -272,7 +324,7 @@ class Crowd:
                 raise ValueError(f"unknown label {label!r}; this adaptor knows {labels}")
             _check_scale(scale)
             a.label, a.control_scale = labels.index(label), float(scale)
-        self.interrupt(i)
+        self._changed(a)
 
     def set_target(self, i: int, position, scale: float = 1.0) -> None:
         """World (x, z) target of a reaching adaptor (None releases); re-expressed in every
@@ -287,7 +339,7 @@ class Crowd:
             _check_scale(scale)
             a.target, a.control_scale = validate_vector(position, 2, "target (x, z)"), float(scale)
         a.near_target = False
-        self.interrupt(i)
+        self._changed(a)
 
     def impulse(self, i: int, preset: str, scale: float = 1.0) -> None:
         """Apply a Table A1 preset (body-centric) at the next frame."""
@@ -319,7 +371,7 @@ class Crowd:
 
     def _add_velocity(self, a: AvatarState, dv: torch.Tensor) -> None:
         a.pending_velocity = dv if a.pending_velocity is None else a.pending_velocity + dv
-        self.interrupt(a.id)
+        self._changed(a)
 
     # ------------------------------------------------------------ generation
     def advance(self) -> tuple[dict[int, torch.Tensor], list[int]]:
@@ -371,10 +423,11 @@ class Crowd:
         dv = torch.zeros(len(avs), 22, 3, dtype=torch.float64)  # impulses: world velocities added to x0
         impulse = torch.zeros(len(avs), dtype=torch.bool)
         for k, a in enumerate(avs):
-            if a.pending_velocity is not None and not a.queue:
+            if a.pending_velocity is not None:  # only set with a cut: this segment starts at the cut
                 dv[k] = a.pending_velocity.double()
                 a.pending_velocity = None
                 impulse[k] = True
+            a.planned = self._plan(a)
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, impulse_velocity=dv, impulse=impulse,
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
@@ -396,8 +449,9 @@ class Crowd:
         return None if a.near_target else torch.tensor([d[0] / n, 0.0, d[1] / n])
 
     @torch.inference_mode()
-    def compute(self, batch: SegmentBatch) -> torch.Tensor:
-        """Algorithm 1 for a prepared batch; touches no avatar (safe outside the lock)."""
+    def compute(self, batch: SegmentBatch, cancelled=None) -> torch.Tensor:
+        """Algorithm 1 for a prepared batch; touches no avatar (safe outside the lock).
+        cancelled: see Sampler.sample."""
         import time
 
         t0 = time.perf_counter()
@@ -408,7 +462,7 @@ class Crowd:
         x0c = apply_transform(batch.x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance
-        seg = self.sampler.sample(batch, x0c, tf)
+        seg = self.sampler.sample(batch, x0c, tf, cancelled)
         t2 = time.perf_counter()
         # test-time processing, ending in one body
         seg = run_stages(self.cfg, StageContext(x0c, offsets, batch, Rt), seg)
@@ -418,12 +472,32 @@ class Crowd:
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": len(batch)}
         return seg_w
 
+    def stale(self, batch: SegmentBatch) -> bool:
+        """Every avatar of the batch was cut or removed since it was prepared: its result would be
+        dropped (read without the lock: a stale answer only costs one more network call)."""
+        return all(self.avatars.get(i) is None or self.avatars[i].epoch != e for i, e in zip(batch.avatars, batch.epochs))
+
     def commit(self, batch: SegmentBatch, seg_w: torch.Tensor) -> None:
-        """Append generated frames, unless a command interrupted the avatar meanwhile."""
+        """Append generated frames, unless a command cut the avatar's queue meanwhile; a change
+        that waited for this segment cuts now. A segment that is not a physical body
+        (processing.physical_faults) is never queued: that avatar is stood up where it is, with a
+        log line."""
+        faults = physical_faults(batch.x0, seg_w.double(), rest_offsets(batch.shapes, torch.float64))
         for k, (i, epoch) in enumerate(zip(batch.avatars, batch.epochs)):
             a = self.avatars.get(i)
             if a is not None and a.epoch == epoch:
+                if faults[k]:
+                    self.guard_resets += 1
+                    if self.guard_resets in (1, 10, 100) or self.guard_resets % 1000 == 0:  # a broken model: not a line per segment
+                        log.warning("avatar %d: the generated motion is not a physical body (%s): reset, standing where it "
+                                    "was (%d such resets so far; is the checkpoint broken?)", i, faults[k], self.guard_resets)
+                    self.reset(i)
+                    continue
                 a.queue.extend(seg_w[k].unbind(0))
+                a.regenerating = False
+                if a.recut:
+                    a.recut = False
+                    self._changed(a)
 
 class Avatar:
     """One body: a Crowd of one with a friendlier interface."""

@@ -340,3 +340,35 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     d_r = spring_decay(off_r[:, None], torch.zeros_like(off_r[:, None]), halflife, t[..., None])
     R = rot.axis_angle_to_matrix(d_r) @ R
     return _pack_moving(x0, root_pos, R[:, :, 0], R[:, :, 1:], joints)
+
+
+# a body outside these is not a person whatever the model did: the guard resets it
+PELVIS_HEIGHT = (-0.5, 3.0)  # m
+MAX_SPEED = 15.0  # m/s of the pelvis, horizontally, over a segment (a sprint is ~10)
+BONE_TOLERANCE = 0.05  # m between a bone's length and its rest length
+
+
+def physical_faults(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor) -> list[str | None]:
+    """Why each segment (B, N, 267), continuing from x0 (B, 267), is not a physical body on its bones
+    `offsets` (B, 22, 3), or None: a non-finite value, the pelvis out of PELVIS_HEIGHT or moving
+    faster than MAX_SPEED, a bone off its rest length. A guard, not a metric: a broken checkpoint
+    (scaled weights put a pelvis at 352 km) must not be streamed."""
+    out: list[str | None] = []
+    J = joints_of(seg)  # (B, N, 22, 3)
+    bones = (J[..., 1:, :] - J[..., PARENTS[1:], :]).norm(dim=-1)  # (B, N, 21)
+    rest = offsets[:, None, 1:].norm(dim=-1)
+    travel = (J[:, :, 0, [0, 2]] - joints_of(x0)[:, None, 0, [0, 2]]).norm(dim=-1)  # (B, N)
+    allowed = MAX_SPEED * torch.arange(1, seg.shape[1] + 1, dtype=seg.dtype) / FPS
+    for k in range(len(seg)):
+        if not torch.isfinite(seg[k]).all():
+            out.append("non-finite values")
+        elif not (PELVIS_HEIGHT[0] <= float(J[k, :, 0, 1].min()) and float(J[k, :, 0, 1].max()) <= PELVIS_HEIGHT[1]):
+            out.append(f"pelvis height {float(J[k, :, 0, 1].min()):.3g}..{float(J[k, :, 0, 1].max()):.3g} m "
+                       f"outside {PELVIS_HEIGHT}")
+        elif bool((travel[k] > allowed).any()):
+            out.append(f"pelvis moved {float(travel[k].max()):.3g} m in {seg.shape[1]} frames (above {MAX_SPEED} m/s)")
+        elif float((bones[k] - rest[k]).abs().max()) > BONE_TOLERANCE:
+            out.append(f"a bone {float((bones[k] - rest[k]).abs().max()):.3g} m off its length")
+        else:
+            out.append(None)
+    return out

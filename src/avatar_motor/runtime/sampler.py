@@ -19,15 +19,20 @@ STEER_JOINTS = [JOINT_INDEX[n] for n in ("pelvis", "spine1", "spine2", "spine3",
                                           "right_collar", "left_shoulder", "right_shoulder")]
 
 
+class Cancelled(Exception):
+    """A batch stopped because every avatar in it was cut meanwhile."""
+
+
 class Sampler:
     def __init__(self, motor: Motor, cfg, adaptor=None):
         """cfg: the RuntimeConfig (steps, eta, steering and guidance weights); adaptor: an
         AdaptedDenoiser on motor's network, or None."""
         self.motor, self.cfg, self.adaptor = motor, cfg, adaptor
 
-    def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform) -> torch.Tensor:
+    def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
         """Segments (B, N, 267) in the canonical frames whose world transforms are tf, from the
-        canonical initial states x0c (B, 267)."""
+        canonical initial states x0c (B, 267). cancelled() -> True stops between network calls
+        (raises Cancelled): the batch is no longer wanted."""
         cfg, motor = self.cfg, self.motor
         Rt = tf.R.transpose(-1, -2)
         # the network sees the impulse in x0's velocities; the blending after it keeps the true x0
@@ -38,7 +43,15 @@ class Sampler:
         cond = motor.norm.encode(x0_cond.float())
         guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float())
         N = motor.net.cfg.frames
-        seg_n = motor.diffusion.sample(self._denoiser(batch, tf, cond), (len(batch), N, STATE_DIM), cfg.steps,
+        denoise = self._denoiser(batch, tf, cond)
+        if cancelled is not None:
+            inner = denoise
+
+            def denoise(x_t, t):
+                if cancelled():
+                    raise Cancelled
+                return inner(x_t, t)
+        seg_n = motor.diffusion.sample(denoise, (len(batch), N, STATE_DIM), cfg.steps,
                                        batch.gens, guide, cfg.eta)
         return motor.norm.decode(seg_n).double()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 
 import numpy as np
@@ -11,14 +12,20 @@ import numpy as np
 from ..body.skeleton import JOINT_NAMES, SHAPE_DIM
 
 VERSION = 1
-MAX_MESSAGE_BYTES = 16 * 1024
+MAX_MESSAGE_BYTES = 16 * 1024  # a longer command gets an error reply
+MAX_SOCKET_MESSAGE_BYTES = 1024 * 1024  # a longer WebSocket message closes the connection (code 1009)
 FRAME_MAGIC = b"AMF1"
 FRAME_HEADER = struct.Struct("<4sIHH")  # magic, frame index, avatar count, joint count
 AVATAR_RECORD = 4 + 22 * 3 * 4 + 22 * 4 * 4  # uint32 id, float32 positions, float32 quaternions
 
 
 class ProtocolError(ValueError):
-    """A malformed message: the reply names the field and what is expected."""
+    """A malformed message: the reply names the field and what is expected, and carries the
+    message's id when it had a valid one (so a client waiting for that reply gets it)."""
+
+    def __init__(self, message: str, id: int | str | None = None):
+        super().__init__(message)
+        self.id = id
 
 
 def _num(v, what: str, lo: float = -1e4, hi: float = 1e4) -> float:
@@ -85,12 +92,17 @@ def _joint(v):
     return _int(v, "joint", 0, 21)
 
 
+_ID = re.compile(r'"id"\s*:\s*(?:(-?\d{1,18})\b|"([^"\\]{0,64})")')
+
+
 def parse_message(text: str | bytes) -> dict:
     """Text of one client message -> validated command dict (keeps an optional 'id')."""
     if isinstance(text, bytes):
         raise ProtocolError("commands are JSON text messages, not binary")
-    if len(text) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"message of {len(text)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    if len(text) > MAX_MESSAGE_BYTES:  # not parsed; its id, if near an end, is found for the reply
+        m = _ID.search(text[:256]) or _ID.search(text[-256:])
+        raise ProtocolError(f"message of {len(text)} bytes exceeds {MAX_MESSAGE_BYTES}",
+                            id=(int(m[1]) if m[1] else m[2]) if m else None)
     try:
         msg = json.loads(text)
     except (json.JSONDecodeError, RecursionError) as e:
@@ -98,18 +110,35 @@ def parse_message(text: str | bytes) -> dict:
     return validate_command(msg)
 
 
+def _message_id(msg: dict):
+    """The message's id if it is a valid one (an integer or a string of at most 64 characters)."""
+    cid = msg.get("id")
+    if isinstance(cid, bool) or not isinstance(cid, (int, str)) or len(str(cid)) > 64:
+        return None
+    return cid
+
+
 def validate_command(msg) -> dict:
     if not isinstance(msg, dict):
         raise ProtocolError("a command must be a JSON object with a 'type'")
+    cid = _message_id(msg)
+    try:
+        return _validate(msg, cid)
+    except ProtocolError as e:
+        e.id = cid
+        raise
+
+
+def _validate(msg: dict, cid) -> dict:
     kind = msg.get("type")
-    if kind not in _FIELDS:
+    if not isinstance(kind, str) or kind not in _FIELDS:
         raise ProtocolError(f"unknown command type {kind!r}; commands are {COMMANDS}"[:300])
     required, optional = _FIELDS[kind]
     out = {"type": kind}
     if "id" in msg:
-        if not isinstance(msg["id"], (int, str)) or isinstance(msg["id"], bool) or len(str(msg["id"])) > 64:
-            raise ProtocolError("id must be an integer or a short string")
-        out["id"] = msg["id"]
+        if cid is None:
+            raise ProtocolError("id must be an integer or a string of at most 64 characters")
+        out["id"] = cid
     for k, check in required.items():
         if k not in msg:
             raise ProtocolError(f"{kind}: missing field {k!r}")

@@ -1,9 +1,11 @@
 """`avatar-motor serve`: one process with the 30-fps world clock, a generation worker thread, a
 WebSocket endpoint (/ws) and the web studio (/). Protocol: docs/protocol.md.
 
-Robustness: every message is validated (errors are replied and logged, never raised into the
-loop); each client has a two-frame send queue, so a slow client loses frames instead of stalling
-the clock; clients come and go freely; any number of viewers share one world.
+Robustness: every message is validated (errors are replied, never raised into the loop); each
+client has a two-frame send queue, so a slow client loses frames instead of stalling the clock,
+a message rate limit, and a share of the avatars; the loop yields between messages, so a flooding
+client cannot starve the clock; rejected messages are logged as a summary per interval; clients
+come and go freely; any number of viewers share one world.
 """
 from __future__ import annotations
 
@@ -11,18 +13,49 @@ import asyncio
 import ipaddress
 import json
 import logging
+import math
 import threading
 import time
 from pathlib import Path
 
 from aiohttp import WSMsgType, web
+from aiohttp.abc import AbstractAccessLogger
 
 from ..body.motion_state import FPS
 from . import protocol as P
-from .world import CommandError, World
+from .world import CommandError, World, measure_capacity
 
 log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
+RATE = 120.0  # commands per second per client (a 60-Hz stick and clicks fit; a flood does not)
+BURST = 240  # commands a client may send at once
+SUMMARY_EVERY = 10.0  # seconds between log lines about rejected or dropped messages
+GUESSES = 10  # wrong tokens from one address within LOCKOUT seconds before it is refused for LOCKOUT
+LOCKOUT = 60.0
+MAX_KEEP = 4  # frames a cut keeps at most (see World, Crowd._changed)
+
+
+class AccessLogger(AbstractAccessLogger):
+    """One line per request without its query string: the token is never written to a log."""
+
+    def log(self, request, response, time):
+        self.logger.info("%s %s %s %d %.1f ms", request.remote, request.method, request.path, response.status, 1e3 * time)
+
+
+class Summary:
+    """Counts events and logs them at most once per interval (a flood writes one line, not one per message)."""
+
+    def __init__(self, what: str, every: float = SUMMARY_EVERY):
+        self.what, self.every = what, every
+        self.count, self.last, self.example = 0, 0.0, ""
+
+    def add(self, example: str = "") -> None:
+        self.count += 1
+        self.example = example or self.example
+        now = time.monotonic()
+        if now - self.last >= self.every:
+            log.info("%s: %d in the last %.0f s (latest: %s)", self.what, self.count, self.every, self.example[:200])
+            self.count, self.last = 0, now
 
 
 def is_loopback(host: str) -> bool:
@@ -35,31 +68,53 @@ def is_loopback(host: str) -> bool:
 
 
 class Client:
-    def __init__(self, ws: web.WebSocketResponse, needs_token: bool):
-        self.ws = ws
+    def __init__(self, ws: web.WebSocketResponse, address: str, needs_token: bool, rate: float = RATE):
+        self.ws, self.address = ws, address
         self.format = "binary"
         self.authorized = not needs_token
         self.queue: asyncio.Queue = asyncio.Queue(maxsize=2)
+        self.rate, self.allowance, self.last = rate, float(BURST), time.monotonic()
+        self.dropped = 0  # messages over the rate limit since the client was last told
+        self.spawned: set[int] = set()  # avatars this client spawned (its share of the world)
 
-    def offer(self, frames: dict[str, bytes | str]) -> None:
-        """Queue the newest frame; a client that has not taken the last two loses the oldest."""
+    def admit(self) -> bool:
+        """Token bucket: RATE messages per second, bursts of BURST."""
+        now = time.monotonic()
+        self.allowance = min(float(BURST), self.allowance + (now - self.last) * self.rate)
+        self.last = now
+        if self.allowance < 1.0:
+            self.dropped += 1
+            return False
+        self.allowance -= 1.0
+        return True
+
+    def offer(self, data: bytes | str) -> None:
+        """Queue the newest frame or stats; a client that has not taken the last two loses the oldest."""
         if not self.authorized:
             return
         if self.queue.full():
             self.queue.get_nowait()
-        self.queue.put_nowait(frames[self.format])
+        self.queue.put_nowait(data)
 
 
 class Server:
-    def __init__(self, world: World, host: str = "127.0.0.1", port: int = 8765, token: str | None = None):
+    def __init__(self, world: World, host: str = "127.0.0.1", port: int = 8765, token: str | None = None,
+                 max_avatars: int | None = None, per_client: int | None = None, rate: float = RATE):
+        """max_avatars: the world's cap (None: measured at start-up, what this machine keeps in real
+        time); per_client: avatars one client may spawn (None: half the cap); rate: commands per
+        second per client."""
         if not is_loopback(host) and not token:
             raise ValueError(f"serving on {host} exposes the server beyond this machine: pass --token SECRET "
                              "(clients then send it in their hello message or as ?token=)")
         self.world, self.host, self.port, self.token = world, host, port, token
+        self.max_avatars, self.per_client, self.rate = max_avatars, per_client, rate
         self.clients: set[Client] = set()
         self.running = False
         self.fps_measured = 0.0
-        self.app = web.Application(middlewares=[self._same_site])
+        self.rejected = Summary("rejected messages")
+        self.flooded = Summary("messages dropped over the rate limit")
+        self.guesses: dict[str, list[float]] = {}  # address -> times of its wrong tokens
+        self.app = web.Application(middlewares=[self._guard])
         self.app.add_routes([
             web.get("/", self.index), web.get("/ws", self.websocket), web.get("/api/info", self.info),
             web.get("/api/record", self.record), web.get("/api/events", self.events),
@@ -69,13 +124,40 @@ class Server:
         self.app.on_cleanup.append(self._stop_background)
 
     # ------------------------------------------------------------ http
+    def _locked_out(self, address: str) -> bool:
+        now = time.monotonic()
+        recent = [t for t in self.guesses.get(address, []) if now - t < LOCKOUT]
+        self.guesses[address] = recent
+        return len(recent) >= GUESSES
+
+    def _token_ok(self, given: str | None, address: str) -> bool:
+        """Whether `given` is the token; a wrong one counts as a guess from that address."""
+        if given is None or not self.token:
+            return False
+        if given == self.token:
+            return True
+        self.guesses.setdefault(address, []).append(time.monotonic())
+        log.warning("a wrong token from %s", address)
+        return False
+
     @web.middleware
-    async def _same_site(self, request, handler):
-        """No web page of another site drives this server: a request whose Origin is not the
-        server's own (the studio's) or whose Host is not a name of this server (DNS rebinding) is
-        refused unless it carries the token. Programs (engines, the Python client) send no
-        Origin and pass."""
-        if not (self.token and request.query.get("token") == self.token):
+    async def _guard(self, request, handler):
+        """Who may use this server.
+        - Token: with --token every route but the static files needs it (`?token=`; the WebSocket
+          may instead send it in `hello`); an address that sent GUESSES wrong tokens within
+          LOCKOUT seconds is refused for LOCKOUT seconds.
+        - Same site: no web page of another site drives this server. A request whose Origin is not
+          the server's own (the studio's) or whose Host is not a name of this server (DNS
+          rebinding) is refused unless it carries the token. Programs (engines, the Python client)
+          send no Origin and pass."""
+        address = request.remote or "?"
+        if self._locked_out(address):
+            raise web.HTTPTooManyRequests(text=f"too many wrong tokens from {address}: wait {LOCKOUT:.0f} s")
+        given = request.query.get("token")
+        has_token = self._token_ok(given, address)
+        if self.token and not has_token and request.path != "/ws" and not request.path.startswith("/static/"):
+            raise web.HTTPUnauthorized(text="token required: add ?token=... to the address")
+        if not has_token:
             host = request.host.rsplit(":", 1)[0].strip("[]") if request.host else ""
             if not (is_loopback(host) or host == self.host):
                 log.warning("refused a request for foreign Host %r", request.host)
@@ -98,13 +180,8 @@ class Server:
         return web.json_response({**self.world.stats(), "version": P.VERSION, "fps": FPS,
                                   "fps_measured": round(self.fps_measured, 1), "clients": len(self.clients)})
 
-    def _check_token(self, request) -> None:
-        if self.token and request.query.get("token") != self.token:
-            raise web.HTTPUnauthorized(text="token required: add ?token=...")
-
     async def record(self, request):
         """The last N seconds of one avatar as a file: ?avatar=0&seconds=10&format=bvh|glb|npz."""
-        self._check_token(request)
         import tempfile
 
         from ..io.export import write_motion
@@ -126,41 +203,57 @@ class Server:
                             headers={"Content-Disposition": f'attachment; filename="avatar{i}_{seconds:g}s.{fmt}"'})
 
     async def events(self, request):
-        """The commands applied so far, as a script for `serve --headless --script`."""
-        self._check_token(request)
-        with self.world.lock:
-            ev = list(self.world.events)
-        return web.json_response({"version": P.VERSION, "seed": self.world.seed, "frames": self.world.frame,
-                                  "avatars_at_start": self.initial_avatars, "events": ev})
+        """The commands applied (the newest world.EVENTS_KEPT), as a script for `serve --headless
+        --script`; serialised off the event loop."""
+        script = {"version": P.VERSION, **self.world.script(), "avatars_at_start": self.initial_avatars}
+        text = await asyncio.get_running_loop().run_in_executor(None, json.dumps, script)
+        return web.Response(text=text, content_type="application/json")
 
     # ------------------------------------------------------------ websocket
     async def websocket(self, request):
-        ws = web.WebSocketResponse(max_msg_size=P.MAX_MESSAGE_BYTES * 4, heartbeat=20)
+        ws = web.WebSocketResponse(max_msg_size=P.MAX_SOCKET_MESSAGE_BYTES, heartbeat=20)
         await ws.prepare(request)
-        client = Client(ws, needs_token=bool(self.token) and request.query.get("token") != self.token)
+        address = request.remote or "?"
+        client = Client(ws, address, needs_token=bool(self.token) and request.query.get("token") != self.token,
+                        rate=self.rate)
         self.clients.add(client)
         sender = asyncio.create_task(self._sender(client))
-        await self._send_json(client, self._welcome())
+        await self._send_json(client, self._welcome(client))
         try:
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
-                    await self._handle(client, msg.data)
+                    if client.admit():
+                        await self._handle(client, msg.data)
+                    else:
+                        self.flooded.add(f"client {address}")
                 elif msg.type == WSMsgType.BINARY:
-                    await self._send_json(client, {"type": "error", "error": "commands are JSON text messages, not binary"})
+                    if client.admit():
+                        await self._send_json(client, {"type": "error", "id": None,
+                                                       "error": "commands are JSON text messages, not binary"})
                 elif msg.type == WSMsgType.ERROR:
                     log.info("client connection error: %s", ws.exception())
+                if self._locked_out(address):
+                    await ws.close(code=1008, message=b"too many wrong tokens")
+                    break
+                # messages already received are returned without suspending: yield, so a client
+                # sending thousands at once cannot keep the clock (and every viewer) waiting
+                await asyncio.sleep(0)
         finally:
             self.clients.discard(client)
             sender.cancel()
         return ws
 
-    def _welcome(self) -> dict:
+    def _welcome(self, client: Client) -> dict:
         from ..body.skeleton import JOINT_NAMES, PARENTS
         from ..runtime.crowd import IMPULSE_PRESETS
+        if not client.authorized:  # nothing about the world before the token
+            return {"type": "welcome", "version": P.VERSION, "auth": "token required: send {\"type\": \"hello\", \"token\": ...}"}
         return {"type": "welcome", "version": P.VERSION, "fps": FPS, "model": self.world.motor.name,
                 "joint_names": JOINT_NAMES, "parents": PARENTS, "presets": sorted(IMPULSE_PRESETS),
                 "commands": P.COMMANDS, "avatars": self.world.crowd.ids(), "adaptor": self._adaptor_info(),
-                "licence": self.world.motor.config.get("licence", "")}
+                "licence": self.world.motor.config.get("licence", ""),
+                "limits": {"avatars": self.world.max_avatars, "avatars_per_client": self.per_client,
+                           "commands_per_second": self.rate, "burst": BURST}}
 
     def _adaptor_info(self) -> dict | None:
         """What the loaded adaptor controls, so a client can offer its labels (or a target)."""
@@ -175,20 +268,32 @@ class Server:
             cmd = P.parse_message(text)
             cid = cmd.pop("id", None)
             if cmd["type"] == "hello":
-                if self.token and cmd.get("token") == self.token:
+                was = client.authorized
+                if self._token_ok(cmd.get("token"), client.address):
                     client.authorized = True
                 if "format" in cmd:
                     client.format = cmd["format"]
                 if not client.authorized:
                     raise P.ProtocolError("token required: send {\"type\": \"hello\", \"token\": ...}")
                 await self._send_json(client, {"type": "ack", "id": cid, "ok": True, "format": client.format})
+                if not was:  # now the world may be described
+                    await self._send_json(client, self._welcome(client))
                 return
             if not client.authorized:
                 raise P.ProtocolError("token required: send {\"type\": \"hello\", \"token\": ...} first")
+            if cmd["type"] == "spawn":
+                mine = client.spawned & set(self.world.crowd.ids())
+                if len(mine) >= self.per_client:
+                    raise CommandError(f"one client may spawn at most {self.per_client} avatars (this one has "
+                                       f"{sorted(mine)}); remove one first")
             result = self.world.apply(cmd)
+            if cmd["type"] == "spawn":
+                client.spawned.add(result["avatar"])
             await self._send_json(client, {"type": "ack", "id": cid, "ok": True, **result})
         except (P.ProtocolError, CommandError, ValueError, KeyError) as e:
-            log.info("rejected message: %s", str(e)[:200])
+            if isinstance(e, P.ProtocolError) and e.id is not None:
+                cid = e.id
+            self.rejected.add(str(e))
             await self._send_json(client, {"type": "error", "id": cid, "error": str(e)[:500]})
 
     async def _send_json(self, client: Client, obj: dict) -> None:
@@ -212,8 +317,20 @@ class Server:
     async def _start_background(self, app):
         self.running = True
         self.initial_avatars = len(self.world.crowd)
+        loop = asyncio.get_running_loop()
+        if self.max_avatars is None:
+            w = self.world
+            cap, keep, line = await loop.run_in_executor(None, measure_capacity, w.motor, w.config, w.crowd.adaptor)
+            log.info(line)
+            self.max_avatars, w.crowd.keep_on_cut = cap, keep
+        self.world.max_avatars = self.max_avatars
+        if self.per_client is None:
+            self.per_client = max(1, (self.max_avatars + 1) // 2)
+        if self.initial_avatars > self.max_avatars:
+            log.warning("%d avatars at start, more than the %d this machine keeps in real time: expect stalls",
+                        self.initial_avatars, self.max_avatars)
         # fill the queues before the clock starts, so the first ticks do not stall
-        await asyncio.get_running_loop().run_in_executor(None, self._prefill)
+        await loop.run_in_executor(None, self._prefill)
         self.worker = threading.Thread(target=self._generation_worker, daemon=True, name="generation")
         self.worker.start()
         self.clock = asyncio.create_task(self._clock())
@@ -228,10 +345,17 @@ class Server:
             self.world.generate()
 
     def _generation_worker(self) -> None:
+        crowd = self.world.crowd
+        ema = None
         while self.running:
             try:
                 if self.world.needs_generation():
                     self.world.generate()
+                    # the frames a cut keeps follow how long a segment takes now (this machine's
+                    # speed varies): enough to cover one, at most MAX_KEEP (133 ms)
+                    t = crowd.timings.get("total", 0.0)
+                    ema = t if ema is None else 0.9 * ema + 0.1 * t
+                    crowd.keep_on_cut = max(1, min(MAX_KEEP, math.ceil(ema * FPS) + 1))
                 else:
                     time.sleep(0.002)
             except Exception:  # never let one bad batch kill the world
@@ -257,23 +381,28 @@ class Server:
             frames = {"binary": P.encode_frame_binary(self.world.frame, ids, J, Q),
                       "json": P.encode_frame_json(self.world.frame, ids, J, Q) if any(c.format == "json" for c in self.clients) else ""}
             for c in list(self.clients):
-                c.offer(frames)
+                c.offer(frames[c.format])
             window.append(time.perf_counter())
             window = window[-60:]
             if len(window) > 1:
                 self.fps_measured = (len(window) - 1) / (window[-1] - window[0])
             if window[-1] - last_stats > 1.0:
                 last_stats = window[-1]
-                st = {**self.world.stats(), "fps": round(self.fps_measured, 1), "clients": len(self.clients)}
+                st = json.dumps({**self.world.stats(), "fps": round(self.fps_measured, 1), "clients": len(self.clients)})
                 if self.world.stalls > last_behind:
                     log.warning("generation behind real time: %d stalled frames so far", self.world.stalls)
                     last_behind = self.world.stalls
                 for c in list(self.clients):
-                    if c.authorized:
-                        asyncio.create_task(self._send_json(c, st))
+                    c.offer(st)
+                    if c.dropped:  # told once a second, not once per message
+                        c.offer(json.dumps({"type": "error", "id": None, "error": (
+                            f"rate limit: {c.dropped} messages dropped in the last second (limit "
+                            f"{self.rate:g} per second, bursts of {BURST})")}))
+                        c.dropped = 0
 
     def run(self) -> None:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
         log.info("studio at http://%s:%d/  (WebSocket ws://%s:%d/ws)", self.host, self.port, self.host, self.port)
-        web.run_app(self.app, host=self.host, port=self.port, print=None, handle_signals=True)
+        web.run_app(self.app, host=self.host, port=self.port, print=None, handle_signals=True,
+                    access_log_class=AccessLogger)
 

@@ -6,7 +6,10 @@ Both hold `lock` while they touch the crowd; the diffusion itself runs outside t
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -17,10 +20,12 @@ from ..body.skeleton import JOINT_NAMES
 from ..body.motion_state import FPS, unpack
 from ..model.checkpoint import Motor
 from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
+from ..runtime.sampler import Cancelled
 from . import protocol as P
 
-MAX_AVATARS = 64
+MAX_AVATARS = 64  # the most a world holds however fast the machine (Server measures its own cap)
 LOOKAHEAD = 8  # frames kept queued ahead of playback
+EVENTS_KEPT = 20000  # the event history is a ring: the newest commands, about 8 MB at most
 
 
 class CommandError(ValueError):
@@ -41,14 +46,21 @@ class World:
     record_seconds: float = 60.0
 
     adaptor: object = None  # an AdaptedDenoiser for labels or targets
+    max_avatars: int = MAX_AVATARS  # spawns beyond are refused (the server sets what it keeps in real time)
 
     def __post_init__(self):
         self.lock = threading.RLock()
         self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptor)
+        # frames kept when a command cuts an avatar's queue, shown while its new segment is made
+        # (Crowd._changed): 2 covers one segment's generation with the next tick's phase (a command
+        # shows within 67-100 ms); the server sets it from a measured segment, replays from the script
+        self.crowd.keep_on_cut = 2
         self.frame = 0
         self.targets: dict[int, Target] = {}
         self.history: dict[int, deque] = {}
-        self.events: list[dict] = []  # the commands applied, with their frame: a replayable script
+        # the commands applied, with their frame: a replayable script (the newest EVENTS_KEPT)
+        self.events: deque[dict] = deque(maxlen=EVENTS_KEPT)
+        self.events_total = 0
         self.stalls = 0  # ticks at which some avatar had no frame ready
 
     # ------------------------------------------------------------ commands
@@ -59,6 +71,7 @@ class World:
             res = getattr(self, f"_cmd_{kind}")(cmd)
             if log:
                 self.events.append({"frame": self.frame, "t": self.frame / FPS, "cmd": cmd})
+                self.events_total += 1
         return res or {}
 
     def _avatar(self, cmd) -> int:
@@ -68,8 +81,9 @@ class World:
         return i
 
     def _cmd_spawn(self, cmd):
-        if len(self.crowd) >= MAX_AVATARS:
-            raise CommandError(f"at most {MAX_AVATARS} avatars")
+        if len(self.crowd) >= self.max_avatars:
+            raise CommandError(f"this world keeps at most {self.max_avatars} avatars in real time on this machine; "
+                               "remove one first (serve --max-avatars sets the cap)")
         pos = cmd.get("position", [1.0 * len(self.crowd), 0.0])
         shape = cmd.get("shape")
         i = self.crowd.spawn(shape=torch.tensor(shape, dtype=torch.float32) if shape is not None else None,
@@ -145,9 +159,8 @@ class World:
                 self.crowd.set_goal(i, None)
             return
         v = d / dist * tg.speed * min(1.0, dist)
-        # re-aim only when the heading changed noticeably: every re-aim restarts the segment
-        if cur is None or float((cur[[0, 2]] - v).norm()) > 0.25:
-            self.crowd.set_goal(i, v.tolist())
+        if cur is None or not torch.equal(cur[[0, 2]], v):
+            self.crowd.set_goal(i, v.tolist())  # the crowd cuts only for a noticeable change
 
     def needs_generation(self) -> bool:
         with self.lock:
@@ -159,7 +172,10 @@ class World:
             job = self.crowd.prepare(LOOKAHEAD)
         if job is None:
             return
-        seg = self.crowd.compute(job)
+        try:  # a command that cuts every avatar of the batch stops it: the cut segment starts sooner
+            seg = self.crowd.compute(job, cancelled=lambda: self.crowd.stale(job))
+        except Cancelled:
+            return
         with self.lock:
             self.crowd.commit(job, seg)
 
@@ -214,8 +230,45 @@ class World:
             raise CommandError(f"avatar {i} has no recorded frames yet")
         return torch.stack(h)
 
+    def script(self) -> dict:
+        """The event history as a script for `serve --headless --script` (a copy, taken under the
+        lock; serialise it off the event loop)."""
+        with self.lock:
+            ev = list(self.events)
+            return {"seed": self.seed, "frames": self.frame, "keep_on_cut": self.crowd.keep_on_cut, "events": ev,
+                    "events_dropped": self.events_total - len(ev)}
+
     def stats(self) -> dict:
         return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd),
                 "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls, "model": self.motor.name,
                 "steps": self.config.steps}
 
+
+
+def measure_capacity(motor: Motor, config: RuntimeConfig, adaptor=None, probe: int = 8) -> tuple[int, int, str]:
+    """How many avatars this machine keeps in real time, and how many frames a cut must keep.
+
+    Times one segment for 1 and for `probe` avatars (after a warm-up), fits cost = a + b x avatars
+    and keeps the batch within 60 % of a segment's 0.5 s (the clock, encoding and this machine's
+    noise take the rest). Returns (cap, keep_on_cut, a line for the log)."""
+    crowd = Crowd(motor, config, 0, adaptor)
+    for k in range(probe):
+        crowd.spawn(position=(1.0 * k, 0.0))
+
+    def seconds(n: int) -> float:
+        job = crowd.prepare(10**9)  # every avatar, the first n of them timed
+        job = dataclasses.replace(job, **{k: v[:n] for k, v in vars(job).items()})
+        t0 = time.perf_counter()
+        crowd.compute(job)
+        return time.perf_counter() - t0
+
+    seconds(1)
+    t1 = min(seconds(1) for _ in range(2))
+    tp = seconds(probe)
+    per = max((tp - t1) / (probe - 1), 1e-4)
+    seg = motor.net.cfg.frames - 1  # new frames per segment
+    budget = 0.6 * seg / FPS
+    cap = max(1, min(MAX_AVATARS, int((budget - (t1 - per)) / per)))
+    keep = max(1, min(3, math.ceil(t1 * FPS) + 1))
+    return cap, keep, (f"a segment takes {1e3 * t1:.0f} ms for 1 avatar, {1e3 * tp:.0f} ms for {probe}: "
+                       f"this machine keeps {cap} avatars in real time; a command keeps {keep} queued frame(s)")

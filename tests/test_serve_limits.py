@@ -1,0 +1,157 @@
+"""The server's limits and guards under abuse (issue #26): continuous goal streams, floods, the
+token, the avatar cap. Each test runs its own server (none shares the machine with another)."""
+import asyncio
+import json
+import random
+import threading
+import time
+
+import pytest
+
+from avatar_motor.client import Client
+from avatar_motor.runtime.crowd import RuntimeConfig
+from avatar_motor.serve.world import World
+
+from .conftest_models import SHIPPED, shipped_or_tiny, tiny_motor
+from .test_server import Running
+
+
+@pytest.fixture
+def server(tmp_path):
+    world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
+    world.apply({"type": "spawn", "position": [0.0, 0.0]}, log=False)
+    r = Running(world)
+    time.sleep(1.0)
+    yield r
+    r.stop()
+
+
+@pytest.mark.parametrize("hz", [10, 60])
+def test_a_jittered_goal_stream_keeps_the_avatar_walking(tmp_path, hz):
+    """A gamepad stick's stream (1.2 m/s forward, +-0.05 m/s jitter, at 10 or 60 Hz) once froze the
+    avatar (0.00 m in 5 s: every goal cut the queue and nothing new was shown). Now goals within
+    the recut tolerance only update the controls: it walks, the clock shows a new frame at (almost)
+    every tick and the queue is cut once."""
+    world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
+    world.apply({"type": "spawn"}, log=False)
+    r = Running(world)
+    rng = random.Random(hz)
+    try:
+        with Client(r.url) as c:
+            time.sleep(0.5)
+            with world.lock:
+                start, s0, f0 = world.crowd.state(0)[[0, 2]].clone(), world.stalls, world.frame
+            t0 = time.time()
+            while time.time() - t0 < 6.0:
+                c.command({"type": "goal", "avatar": 0, "velocity": [rng.uniform(-0.05, 0.05), 1.2 + rng.uniform(-0.05, 0.05)]},
+                          wait=False)
+                time.sleep(1.0 / hz)
+            with world.lock:
+                moved = float((world.crowd.state(0)[[0, 2]] - start).norm())
+                stalls, ticks, cuts = world.stalls - s0, world.frame - f0, world.crowd.avatars[0].epoch
+        print(f"{hz} Hz: moved {moved:.2f} m in 6 s, {stalls} stalled of {ticks} ticks, {cuts} cut(s)")
+        assert stalls <= 0.01 * ticks and cuts <= 2
+        if SHIPPED.joinpath("model.safetensors").exists():
+            assert moved > 0.5
+    finally:
+        r.stop()
+
+
+def test_a_flood_from_one_client_leaves_other_viewers_at_30fps(server):
+    """50k messages sent as fast as a socket takes them (malformed and valid mixed): a second
+    viewer keeps >= 28 fps, the flooder is told how many were dropped, the event history stays
+    bounded and the server log gets a summary, not a line per message."""
+    import aiohttp
+    world = server.server.world
+    msgs = ["{", '{"type": "goal", "avatar": 0, "velocity": [0.5, 0.0]}', '{"type": "push"}', "[]"]
+    told = []
+
+    async def flood():
+        async with aiohttp.ClientSession() as s, s.ws_connect(server.url, max_msg_size=0) as ws:
+            for k in range(50000):
+                await ws.send_str(msgs[k % len(msgs)])
+            end = time.time() + 3
+            while time.time() < end:
+                try:
+                    m = await ws.receive(timeout=0.5)
+                except asyncio.TimeoutError:
+                    continue
+                if m.type == aiohttp.WSMsgType.TEXT and "rate limit" in m.data:
+                    told.append(json.loads(m.data)["error"])
+
+    events_before = world.events_total
+    with Client(server.url) as viewer:
+        viewer.drain()
+        th = threading.Thread(target=lambda: asyncio.run(flood()))
+        t0 = time.time()
+        th.start()
+        n = 0
+        while th.is_alive() and time.time() - t0 < 60:
+            n += sum(1 for _ in viewer.frames(15))
+        dt = time.time() - t0
+        th.join(10)
+    print(f"viewer: {n} frames in {dt:.1f} s = {n / dt:.1f} fps during the flood; told {told[:2]}")
+    assert n / dt >= 28.0
+    assert told and all(t.startswith("rate limit:") for t in told)
+    accepted = world.events_total - events_before
+    assert accepted < 50000 / 4 and len(world.events) <= world.events.maxlen  # the rate limit took the rest
+    with Client(server.url) as c:
+        assert c.command({"type": "goal", "avatar": 0, "velocity": None})["ok"]
+
+
+def test_the_token_guards_every_route_is_never_logged_and_guesses_are_limited(tmp_path, caplog):
+    import logging
+
+    import aiohttp
+    from avatar_motor.serve import server as S
+    world = World(tiny_motor(tmp_path), seed=0)
+    world.apply({"type": "spawn"}, log=False)
+    r = Running(world, token="s3cret")
+    base = f"http://127.0.0.1:{r.port}"
+
+    async def get(path):
+        async with aiohttp.ClientSession() as s, s.get(base + path) as resp:
+            return resp.status
+
+    def status(path):
+        return asyncio.run(get(path))
+
+    try:
+        with caplog.at_level(logging.INFO):
+            for path in ("/", "/api/info", "/api/events", "/api/record?avatar=0&seconds=1"):
+                assert status(path) == 401, path
+                assert status(path + ("&" if "?" in path else "?") + "token=s3cret") in (200, 503), path
+            with Client(r.url) as c:  # no token yet: a welcome that says so, nothing about the world
+                assert "auth" in c.welcome and "avatars" not in c.welcome and "model" not in c.welcome
+                assert c.command({"type": "hello", "token": "s3cret"})["ok"]
+                assert c._wait_message(lambda m: m.get("type") == "welcome" and "avatars" in m)["avatars"] == [0]
+        assert not any("s3cret" in rec.getMessage() for rec in caplog.records)
+        for k in range(S.GUESSES):
+            assert status(f"/api/info?token=guess{k}") == 401
+        assert status("/api/info?token=s3cret") == 429  # locked out, even with the right one, for a while
+    finally:
+        r.stop()
+
+
+def test_a_world_refuses_more_avatars_than_it_keeps_in_real_time(tmp_path):
+    """The cap is measured at start-up (serve --max-avatars overrides it) and one client may take
+    only its share."""
+    world = World(tiny_motor(tmp_path), seed=0)
+    r = Running(world)
+    try:
+        assert 1 <= world.max_avatars <= 64 and 1 <= world.crowd.keep_on_cut <= 3
+        assert r.server.per_client == max(1, (world.max_avatars + 1) // 2)
+    finally:
+        r.stop()
+    world = World(tiny_motor(tmp_path), seed=0)
+    r = Running(world, max_avatars=3, per_client=2)
+    try:
+        with Client(r.url) as a, Client(r.url) as b:
+            assert a.welcome["limits"]["avatars"] == 3 and a.welcome["limits"]["avatars_per_client"] == 2
+            assert a.command({"type": "spawn"})["ok"] and a.command({"type": "spawn"})["ok"]
+            assert "at most 2" in a.command({"type": "spawn"})["error"]
+            assert b.command({"type": "spawn"})["ok"]
+            assert "at most 3" in b.command({"type": "spawn"})["error"]
+            assert a.command({"type": "remove", "avatar": 0})["ok"] and a.command({"type": "spawn"})["ok"]
+    finally:
+        r.stop()
