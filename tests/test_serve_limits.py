@@ -155,3 +155,15 @@ def test_a_world_refuses_more_avatars_than_it_keeps_in_real_time(tmp_path):
             assert a.command({"type": "remove", "avatar": 0})["ok"] and a.command({"type": "spawn"})["ok"]
     finally:
         r.stop()
+
+
+def test_bench_soak_reports_rate_memory_stalls_nan_and_drift(tmp_path):
+    """`avatar-motor bench --soak` on a short run: its table and plot (the hour-long run is in the README)."""
+    from avatar_motor.eval.serve_bench import soak
+    model = SHIPPED if (SHIPPED / "model.safetensors").exists() else tiny_motor(tmp_path).path
+    report = soak(str(model), 8.0, avatars=2, clients=2, window=4.0, png=str(tmp_path / "soak.png"))
+    print(report)
+    rows = [line.split() for line in report.splitlines() if line.strip() and line.split()[0].replace(".", "").isdigit()]
+    assert len(rows) == 2 and all(len(r) == 5 for r in rows)  # time, 2 clients' frames/s, memory, stalls
+    assert all(float(r[1]) > 20 and float(r[2]) > 20 and float(r[3]) > 50 for r in rows)
+    assert "frames with NaN/inf: 0" in report and "idle drift" in report and (tmp_path / "soak.png").stat().st_size > 1000

@@ -359,6 +359,12 @@ def _bench(a) -> int:
 
     if a.threads:
         torch.set_num_threads(a.threads)
+    if a.soak:
+        from .eval.serve_bench import soak
+        if a.soak <= 0 or not 1 <= a.avatars <= 64 or not 1 <= a.clients <= 64:
+            raise ValueError("--soak SECONDS > 0, --avatars 1..64, --clients 1..64")
+        print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png), flush=True)
+        return 0
     if a.serve:
         from .eval.serve_bench import serve_bench
         print(serve_bench(a.model))
@@ -636,6 +642,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=int)
     b.add_argument("--max-avatars", type=int, default=256)
     b.add_argument("--serve", action="store_true", help="measure a served world through the socket instead")
+    b.add_argument("--soak", type=float, metavar="SECONDS", help="a served world watched for this long: frames/s per "
+                   "client, server memory, stalls, NaN, idle drift")
+    b.add_argument("--avatars", type=int, default=8, help="with --soak")
+    b.add_argument("--clients", type=int, default=4, help="with --soak")
+    b.add_argument("--png", help="with --soak: plot of frames/s and memory over time")
     b.set_defaults(func=_bench)
     return p
 

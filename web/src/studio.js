@@ -98,7 +98,8 @@ class Body {
 const bodies = new Map();
 
 // ---------------------------------------------------------------- connection
-const state = { frame: 0, connected: false, fpsTimes: [], selected: 0, model: "", lastStats: null, received: 0, errors: [] };
+const state = { frame: 0, connected: false, fpsTimes: [], renderTimes: [], selected: 0, model: "", lastStats: null,
+  received: 0, errors: [], stalls: 0, stallsRecent: 0 };
 window.studio = state;  // for tests and the console
 let ws;
 let nextId = 1;
@@ -121,6 +122,7 @@ function connect() {
     if (typeof ev.data !== "string") return onFrame(ev.data);
     const msg = JSON.parse(ev.data);
     if (msg.type === "welcome") {
+      if (msg.auth) { $("warn").textContent = "this server needs its token: open the studio as /?token=..."; return; }
       PARENTS = msg.parents; JOINTS = msg.joint_names; state.model = msg.model;
       $("model").textContent = msg.model;
       $("licence").textContent = msg.licence;
@@ -128,15 +130,29 @@ function connect() {
       buildLabels(msg.adaptor);
       $("warn").textContent = "";
     } else if (msg.type === "stats") {
+      // stalls: ticks at which generation had no frame ready (the avatar held its pose)
+      state.stallsRecent = state.lastStats ? msg.stalls - state.lastStats.stalls : 0;
       state.lastStats = msg;
+      state.stalls = msg.stalls;
       $("gen").textContent = msg.gen_ms;
-      $("warn").textContent = msg.fps < 28 ? `stream below 30 fps (${msg.fps}): generation is behind` : "";
+      $("stalls").textContent = msg.stalls;
+      warn();
     } else if (msg.type === "ack" || msg.type === "error") {
       if (msg.type === "error") { state.errors.push(msg.error); console.warn(msg.error); }
       const r = pending.get(msg.id);
       if (r) { pending.delete(msg.id); r(msg); }
     }
   };
+}
+
+// what the HUD warns about: the server's generation falling behind, the stream arriving below
+// 30 fps (network or server), or this browser drawing below 30 fps
+function warn() {
+  const msgs = [];
+  if (state.stallsRecent > 0) msgs.push(`generation is behind: ${state.stallsRecent} stalled frame(s) in the last second`);
+  if (state.fpsTimes.length < 28 && state.connected && state.received > 60) msgs.push(`stream below 30 fps (${state.fpsTimes.length})`);
+  if (state.renderTimes.length < 28 && state.received > 60) msgs.push(`this browser draws ${state.renderTimes.length} fps`);
+  $("warn").textContent = msgs.join(" · ");
 }
 
 function onFrame(buf) {
@@ -326,12 +342,16 @@ window.addEventListener("pointerup", (ev) => {
 
 // ---------------------------------------------------------------- render loop
 let lastPad = 0;
+let lastT = null;
+const FOLLOW_TIME = 0.35;  // seconds for the camera to close ~63 % of the way to the avatar, at any frame rate
 function animate(t) {
   requestAnimationFrame(animate);
+  const dt = lastT === null ? 0 : Math.min(0.1, (t - lastT) / 1000);
+  lastT = t;
   const b = bodies.get(state.selected);
   if (b && b.positions) {  // follow the selected avatar, keeping the user's orbit offset
     const target = new THREE.Vector3(b.positions[0], 0.9, b.positions[2]);
-    const delta = target.clone().sub(orbit.target).multiplyScalar(0.1);
+    const delta = target.clone().sub(orbit.target).multiplyScalar(1 - Math.exp(-dt / FOLLOW_TIME));
     orbit.target.add(delta);
     camera.position.add(delta);
     sun.position.set(target.x + 4, 8, target.z + 3);
@@ -340,7 +360,10 @@ function animate(t) {
   if (t - lastPad > 150 && navigator.getGamepads && [...navigator.getGamepads()].some(Boolean)) { lastPad = t; steer(); }
   orbit.update();
   renderer.render(scene, camera);
+  state.renderTimes.push(t);
+  while (state.renderTimes.length && t - state.renderTimes[0] > 1000) state.renderTimes.shift();
   $("fps").textContent = state.fpsTimes.length;
+  $("drawn").textContent = state.renderTimes.length;
   $("frame").textContent = state.frame;
 }
 connect();

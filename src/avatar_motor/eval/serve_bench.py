@@ -24,10 +24,10 @@ def _cpu_seconds(pid: int) -> float:
     return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _start(model: str, avatars: int) -> tuple[subprocess.Popen, str]:
+def _start(model: str, avatars: int, log=subprocess.DEVNULL) -> tuple[subprocess.Popen, str]:
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "avatar_motor.cli", "serve", "--model", model, "--avatars", str(avatars),
-                             "--port", str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             "--port", str(port)], stdout=log, stderr=log)
     url = f"ws://127.0.0.1:{port}/ws"
     end = time.time() + 60
     while time.time() < end:
@@ -93,3 +93,114 @@ def serve_bench(model: str, seconds: float = 10.0) -> str:
             proc.terminate()
             proc.wait(10)
     return "\n".join(lines)
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window: float = 60.0,
+         png: str | None = None) -> str:
+    """`bench --soak`: a real `serve` subprocess with `avatars` idle avatars watched by `clients`
+    clients for `seconds`. Per window: frames per second each client received, the server's
+    resident memory, stalled ticks; over the run: frames with non-finite values and how far each
+    idle avatar's pelvis wandered."""
+    import threading
+
+    from ..client import Client
+    proc, url = _start(model, avatars)
+    rows, lock = [], threading.Lock()
+    counts = [0] * clients
+    nonfinite = [0]
+    first: dict[int, np.ndarray] = {}
+    last: dict[int, np.ndarray] = {}
+    stop = threading.Event()
+
+    def watch(k: int, c) -> None:
+        while not stop.is_set():
+            try:
+                f = c.frames_q.get(timeout=1.0)
+            except Exception:  # noqa: BLE001 - a quiet second; the window shows it
+                continue
+            with lock:
+                counts[k] += 1
+                if k == 0:
+                    for i, a in f["avatars"].items():
+                        p = a["positions"]
+                        if not (np.isfinite(p).all() and np.isfinite(a["rotations"]).all()):
+                            nonfinite[0] += 1
+                            continue
+                        first.setdefault(i, p[0, [0, 2]].copy())
+                        last[i] = p[0, [0, 2]].copy()
+
+    try:
+        time.sleep(2.0)
+        cs = [Client(url, timeout=30).__enter__() for _ in range(clients)]
+        threads = [threading.Thread(target=watch, args=(k, c), daemon=True) for k, c in enumerate(cs)]
+        for t in threads:
+            t.start()
+        t0 = time.time()
+        stalls0 = None
+        while time.time() - t0 < seconds:
+            with lock:
+                before = list(counts)
+            w0 = time.time()
+            time.sleep(min(window, seconds - (w0 - t0)))
+            dt = time.time() - w0
+            with lock:
+                fps = [(a - b) / dt for a, b in zip(counts, before)]
+            stats = [m for m in _drain_messages(cs[0]) if m.get("type") == "stats"]
+            stalls = stats[-1]["stalls"] if stats else (rows[-1]["stalls"] if rows else 0)
+            stalls0 = stalls if stalls0 is None else stalls0
+            rows.append({"t": time.time() - t0, "fps": fps, "rss": _rss_mb(proc.pid), "stalls": stalls})
+        stop.set()
+        for c in cs:
+            c.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    drift = {i: float(np.linalg.norm(last[i] - first[i])) for i in sorted(first)}
+    lines = [f"soak: `avatar-motor serve --model {model} --avatars {avatars}`, {clients} clients, {seconds:.0f} s "
+             f"({os.cpu_count()} cores)",
+             "  time (s)  frames/s per client" + " " * max(0, 8 * clients - 19) + "  server RSS (MB)  stalled ticks so far"]
+    for r in rows:
+        lines.append(f"  {r['t']:8.0f}  " + " ".join(f"{x:7.1f}" for x in r["fps"]) + f"  {r['rss']:15.0f}  {r['stalls']:20d}")
+    all_fps = [x for r in rows for x in r["fps"]]
+    after = [r["rss"] for r in rows if r["t"] > 60.0] or [r["rss"] for r in rows]
+    lines.append(f"  frames/s per client: min {min(all_fps):.1f}, mean {np.mean(all_fps):.1f} (per {window:.0f}-s window)")
+    lines.append(f"  server memory {'after the first minute' if rows and rows[-1]['t'] > 60 else 'over the run'}: "
+                 f"{min(after):.0f}-{max(after):.0f} MB "
+                 f"(growth {after[-1] - after[0]:+.0f} MB)")
+    lines.append(f"  stalled ticks: {rows[-1]['stalls'] if rows else 0} of {int(seconds * 30)}; frames with NaN/inf: {nonfinite[0]}")
+    lines.append("  idle drift of each avatar's pelvis (m): " + ", ".join(f"{i}: {d:.2f}" for i, d in drift.items()))
+    if png:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        ts = [r["t"] / 60 for r in rows]
+        for k in range(clients):
+            a1.plot(ts, [r["fps"][k] for r in rows], label=f"client {k}")
+        a1.set_ylabel("frames/s received")
+        a1.set_ylim(0, 35)
+        a1.legend(loc="lower right")
+        a2.plot(ts, [r["rss"] for r in rows])
+        a2.set_ylabel("server RSS (MB)")
+        a2.set_xlabel("minutes")
+        fig.suptitle(f"soak: {avatars} avatars, {clients} clients")
+        fig.savefig(png, dpi=80)
+        lines.append(f"  plot: {png}")
+    return "\n".join(lines)
+
+
+def _drain_messages(c) -> list[dict]:
+    out = []
+    while True:
+        try:
+            out.append(c.messages.get_nowait())
+        except Exception:  # noqa: BLE001 - empty
+            return out
