@@ -102,6 +102,8 @@ def _runtime_config(a):
     cfg = RuntimeConfig()
     if getattr(a, "steps", None):
         cfg.steps = a.steps
+    if getattr(a, "backend", None):
+        cfg.backend = a.backend
     if getattr(a, "no_processing", False):
         cfg.stages = ()  # the network's output as one body: FK of its rotations (the runtime's fk stage)
     fields = {f.name: f for f in dataclasses.fields(RuntimeConfig)}
@@ -121,6 +123,7 @@ def _runtime_config(a):
 
 def _add_runtime_args(parser) -> None:
     parser.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
+    parser.add_argument("--backend", choices=["torch", "onnxruntime"], help="what runs the network (default: onnxruntime)")
     parser.add_argument("--no-processing", action="store_true",
                         help="the network's raw output as one body (FK of its rotations on the predicted pelvis): no post-processing stage")
     parser.add_argument("--runtime", action="append", metavar="NAME=VALUE",
@@ -217,6 +220,20 @@ def _parse_xz(text: str):
     except ValueError:
         raise ValueError(f"--target {text!r} must be X,Z in metres (e.g. 2,1.5) or 'free'") from None
     return (x, z)
+
+
+def _export_onnx(a) -> int:
+    from .model.checkpoint import load_checkpoint
+    from .model.onnx import export_file
+
+    motor = load_checkpoint(a.model)
+    path = export_file(motor.net, a.out)
+    cfg = motor.net.cfg
+    print(f"{path}: {motor.name} as ONNX (opset 17, float32): inputs t (B,) int64, x_t (B, {cfg.frames}, {cfg.state_dim}) "
+          f"float32, x0 (B, {cfg.state_dim}) float32; output x0_hat (B, {cfg.frames}, {cfg.state_dim}); "
+          f"the normalisation and diffusion schedule are in {motor.path / 'config.json'} (docs/onnx.md). "
+          f"{motor.config.get('licence', '')}")
+    return 0
 
 
 def _generate(a) -> int:
@@ -369,7 +386,7 @@ def _bench(a) -> int:
         from .eval.serve_bench import serve_bench
         print(serve_bench(a.model))
         return 0
-    print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars))
+    print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a)))
     return 0
 
 
@@ -576,6 +593,11 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--export", help="headless output folder (BVH + npz per avatar)")
     sv.set_defaults(func=_serve)
 
+    ox = sub.add_parser("export-onnx", help="the model's network as an ONNX file (engines: Unity Sentis, Unreal NNE)")
+    ox.add_argument("--model", default=str(DEFAULT_MODEL))
+    ox.add_argument("--out", required=True, help="the .onnx file to write")
+    ox.set_defaults(func=_export_onnx)
+
     g = sub.add_parser("generate", help="generate motion to a .bvh, .glb or .npz file")
     g.add_argument("--model", default=str(DEFAULT_MODEL))
     g.add_argument("--seconds", type=float, default=10.0)
@@ -647,6 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--avatars", type=int, default=8, help="with --soak")
     b.add_argument("--clients", type=int, default=4, help="with --soak")
     b.add_argument("--png", help="with --soak: plot of frames/s and memory over time")
+    _add_runtime_args(b)
     b.set_defaults(func=_bench)
     return p
 

@@ -62,7 +62,12 @@ class Client:
             hello = {"type": "hello", "version": 1, "format": self.format}
             if self.token:
                 hello["token"] = self.token
-            self.command(hello)
+            reply = self.command(hello)
+            if reply.get("type") == "error":
+                self.close()
+                raise ConnectionError(f"{self.url}: {reply['error']}")
+            if "auth" in self.welcome:  # the server describes its world once the token is given
+                self.welcome = self._wait_message(lambda m: m.get("type") == "welcome" and "auth" not in m)
 
     def close(self) -> None:
         if self._loop.is_running():

@@ -2,6 +2,8 @@
 `bench` (Table A6 columns, crowd throughput, reaction latency)."""
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import time
 
@@ -162,16 +164,25 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
     return {k: v / segments for k, v in acc.items()}
 
 
-def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256) -> str:
-    default = RuntimeConfig()
+def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256,
+          runtime: RuntimeConfig | None = None) -> str:
+    """runtime: the configuration measured as the default (its backend also runs the crowd and
+    reaction rows); the same settings on the other backend are timed in the same run."""
+    default = runtime or RuntimeConfig()
     plain50 = RuntimeConfig(steps=50, stages=())
     settings = [
         ("50 steps", plain50, False),
         ("50 steps + proc.", RuntimeConfig(steps=50), False),
         ("50 steps + proc. + CBG", RuntimeConfig(steps=50), True),
         ("10 steps + proc. + CBG", RuntimeConfig(steps=10), True),
-        (f"{default.steps} steps + proc. + CBG (default)", default, True),
+        (f"{default.steps} steps + proc. + CBG ({default.backend})", default, True),
     ]
+    other = "onnxruntime" if default.backend == "torch" else "torch"
+    try:
+        __import__(other)
+        settings.append((f"{default.steps} steps + proc. + CBG ({other})", dataclasses.replace(default, backend=other), True))
+    except ImportError:
+        pass
     rows = []
     for name, cfg, goal in settings:
         t = _time_segments(motor, cfg, 1, segments, goal, seed)

@@ -93,6 +93,11 @@ class RuntimeConfig:
     path_weight: float = 0.0  # our L_path (centroid travels at the goal velocity)
     facing_weight: float = 0.2  # PRIMAL's L_facing on the hips of the last frame
     eta: float = 1.0  # 1 = DDPM ancestral sampling, 0 = DDIM
+    # what runs the base network: "onnxruntime" (the network exported in memory, model/onnx.py)
+    # or "torch". `avatar-motor bench` times both in one run; measured on one core: 8-step segment
+    # for one avatar 65 ms vs 99 ms (diffusion 47 vs 82), 16 avatars 396 vs 451 ms, reaction 50
+    # vs 96 ms; eval realism reads the same on both (network outputs within 1e-4)
+    backend: str = "onnxruntime"
     # a new goal this close to the one the latest segment was made for (m/s; rad of facing) only
     # updates the controls, without cutting the queued frames: a gamepad stick's jitter must not
     # regenerate (issue #26: a 30-60 Hz goal stream froze the avatar)

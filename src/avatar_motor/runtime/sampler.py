@@ -12,7 +12,10 @@ from ..body.motion_state import SLICES, STATE_DIM, Transform
 from ..body.skeleton import JOINT_INDEX
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, facing_of, move_loss_and_grad, path_loss_and_grad
+from ..model.onnx import onnx_denoiser
 from .stages import SegmentBatch
+
+BACKENDS = ("torch", "onnxruntime")
 
 # the joints that carry a steering impulse (the trunk, as in the forward_run preset)
 STEER_JOINTS = [JOINT_INDEX[n] for n in ("pelvis", "spine1", "spine2", "spine3", "neck", "head", "left_collar",
@@ -28,6 +31,10 @@ class Sampler:
         """cfg: the RuntimeConfig (steps, eta, steering and guidance weights); adaptor: an
         AdaptedDenoiser on motor's network, or None."""
         self.motor, self.cfg, self.adaptor = motor, cfg, adaptor
+        if cfg.backend not in BACKENDS:
+            raise ValueError(f"runtime backend must be one of {BACKENDS}, got {cfg.backend!r}")
+        # the base network as ONNX Runtime runs it (an adaptor's avatars use torch)
+        self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" else motor.net
 
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
         """Segments (B, N, 267) in the canonical frames whose world transforms are tf, from the
@@ -58,7 +65,7 @@ class Sampler:
     def _denoiser(self, batch: SegmentBatch, tf, cond):
         """The base network, or the adaptor with per-avatar controls (scale 0 for the avatars it does
         not steer, which is the base model exactly)."""
-        net, ad = self.motor.net, self.adaptor
+        net, ad = self.net, self.adaptor
         if ad is None or not any(batch.adapted):
             return lambda x_t, t: net(t, x_t, cond)
         scale = torch.tensor([s if on else 0.0 for on, s in zip(batch.adapted, batch.control_scales)])

@@ -1,0 +1,85 @@
+"""The denoiser as an ONNX graph, run by ONNX Runtime on the CPU (RuntimeConfig.backend
+"onnxruntime"), and the file an engine loads (Unity Sentis, Unreal NNE; docs/onnx.md).
+
+Graph: inputs `t` (B,) int64 diffusion step, `x_t` (B, frames, 267) float32 noisy normalised
+segment, `x0` (B, 267) float32 normalised initial state; output `x0_hat` (B, frames, 267) float32,
+the network's estimate of the clean normalised segment. B is dynamic.
+"""
+from __future__ import annotations
+
+import io
+import warnings
+import weakref
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..io.atomic import write_file
+from .denoiser import Denoiser
+
+OPSET = 17
+INPUTS = ("t", "x_t", "x0")
+OUTPUT = "x0_hat"
+
+
+def _require(module: str):
+    try:
+        return __import__(module)
+    except ImportError:
+        raise ValueError(f"the onnxruntime backend needs the '{module}' package: pip install {module} "
+                         "(make install brings it)") from None
+
+
+def export_bytes(net: Denoiser) -> bytes:
+    """The network as an ONNX model (float32 weights), with a dynamic batch."""
+    _require("onnx")
+    cfg = net.cfg
+    example = (torch.tensor([1, 2]), torch.zeros(2, cfg.frames, cfg.state_dim), torch.zeros(2, cfg.state_dim))
+    buf = io.BytesIO()
+    was = net.training
+    net.eval()
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            # the TorchScript exporter (no onnxscript needed) is deprecated upstream and warns
+            # about the fixed q/k/v split; the parity test checks what it writes
+            warnings.simplefilter("ignore")
+            torch.onnx.export(net, example, buf, dynamo=False, opset_version=OPSET, input_names=list(INPUTS),
+                              output_names=[OUTPUT], dynamic_axes={k: {0: "batch"} for k in (*INPUTS, OUTPUT)})
+    finally:
+        net.train(was)
+    return buf.getvalue()
+
+
+def export_file(net: Denoiser, path: str | Path) -> Path:
+    data = export_bytes(net)
+    return write_file(path, lambda tmp: Path(tmp).write_bytes(data))
+
+
+class OnnxDenoiser:
+    """Calls like Denoiser.forward(t, x_t, x0) -> x0_hat, run by an ONNX Runtime session."""
+
+    def __init__(self, model: bytes | str | Path, threads: int | None = None):
+        ort = _require("onnxruntime")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads or torch.get_num_threads()
+        opts.inter_op_num_threads = 1
+        src = model if isinstance(model, bytes) else str(model)
+        self.session = ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
+
+    def __call__(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        feed = {"t": t.long().numpy(), "x_t": np.ascontiguousarray(x_t.float().numpy()),
+                "x0": np.ascontiguousarray(x0.float().numpy())}
+        return torch.from_numpy(self.session.run([OUTPUT], feed)[0])
+
+
+_SESSIONS: "weakref.WeakKeyDictionary[Denoiser, OnnxDenoiser]" = weakref.WeakKeyDictionary()
+
+
+def onnx_denoiser(net: Denoiser) -> OnnxDenoiser:
+    """The network exported in memory and loaded into ONNX Runtime (about a second), once per
+    network object: a runtime's network is frozen (a network whose weights change after this call
+    keeps its old session)."""
+    if net not in _SESSIONS:
+        _SESSIONS[net] = OnnxDenoiser(export_bytes(net))
+    return _SESSIONS[net]
