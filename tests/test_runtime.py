@@ -440,7 +440,7 @@ def test_smoothing_width_can_differ_per_body():
 
 @pytest.mark.parametrize("with_body, expected", [(0.0, (-1.0, 0.0)), (1.0, (0.0, 1.0)), (0.5, (-0.7071, 0.7071))])
 def test_steering_velocity_turns_with_the_body(motor, with_body, expected):
-    # a standing body facing +Z told to go right (-X): steer_with_body rotates the trunk's steering
+    # a standing body facing +Z told to go right (-X): steer_with_body rotates the body's steering
     # velocity from the goal back toward where the body faces, by that fraction of the angle
     from avatar_motor.runtime.crowd import RuntimeConfig
     from avatar_motor.runtime.sampler import STEER_JOINTS

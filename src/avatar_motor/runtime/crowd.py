@@ -69,7 +69,7 @@ class RuntimeConfig:
     # speed and direction control. Default: steering impulses (ours), which the network turns into
     # steps; measured on eval control (16 states): velocity error 0.57 vs 1.33 m/s, facing error
     # 0.18 vs 1.00, ASR 0.055 vs 0.20 for gradient guidance (move 50, path 40, facing 0.2)
-    steer_impulse: float = 1.5  # the trunk's initial velocity moved by this x (goal - current), horizontally
+    steer_impulse: float = 1.5  # the body's initial velocity moved by this x (goal - current), horizontally
     turn_impulse: float = 20.0  # initial yaw rate (rad/s) = this x the angle to the facing goal
     # while the body still turns toward its facing goal, the steering velocity turns with it by
     # this fraction of the remaining angle (0 = straight at the goal, which this model side-steps;

@@ -17,9 +17,12 @@ from .stages import SegmentBatch
 
 BACKENDS = ("torch", "onnxruntime")
 
-# the joints that carry a steering impulse (the trunk, as in the forward_run preset)
-STEER_JOINTS = [JOINT_INDEX[n] for n in ("pelvis", "spine1", "spine2", "spine3", "neck", "head", "left_collar",
-                                          "right_collar", "left_shoulder", "right_shoulder")]
+# the joints that carry a steering impulse: the whole body. The trunk alone (as in the
+# forward_run preset) was the default until measured (eval control, 45 x 3 s, impulse 1.5):
+# velocity error 0.503 -> 0.420, facing 0.088 -> 0.076, ASR over unguided +0.026 -> +0.039; and 8
+# avatars idling 1 s, then a 1.2 m/s goal for 10 s: 0.29 -> 0.78 m/s mean (the trunk alone let most
+# of them shuffle); at impulse 2 or more either way the walk lurches segment by segment
+STEER_JOINTS = list(range(22))
 
 
 class Cancelled(Exception):
@@ -83,7 +86,7 @@ class Sampler:
 
     def _steer(self, x0c: torch.Tensor, v_goals: list, f_goals: list, Rt: torch.Tensor) -> None:
         """Steering as an impulse (our addition): the network starts each segment already moving the
-        way it should go. The trunk's initial velocity is moved toward the goal velocity
+        way it should go. The body's initial velocity is moved toward the goal velocity
         (horizontally, by steer_impulse x the difference), and the body gets a yaw rate toward the
         facing goal (turn_impulse x the angle, rad/s), as velocities about the pelvis."""
         cfg = self.cfg
