@@ -28,8 +28,9 @@ def server(tmp_path):
 def test_a_jittered_goal_stream_keeps_the_avatar_walking(tmp_path, hz):
     """A gamepad stick's stream (1.2 m/s forward, +-0.05 m/s jitter, at 10 or 60 Hz) once froze the
     avatar (0.00 m in 5 s: every goal cut the queue and nothing new was shown). Now goals within
-    the recut tolerance only update the controls: it walks, the clock shows a new frame at (almost)
-    every tick and the queue is cut once."""
+    the recut tolerance only update the controls: it walks (after the first 2 s at 0.8-1.0 m/s
+    here; this model's speed from an idle start tops out near there, see the card), the clock shows
+    a new frame at (almost) every tick and the queue is cut once."""
     world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
     world.apply({"type": "spawn"}, log=False)
     r = Running(world)
@@ -40,17 +41,23 @@ def test_a_jittered_goal_stream_keeps_the_avatar_walking(tmp_path, hz):
             with world.lock:
                 start, s0, f0 = world.crowd.state(0)[[0, 2]].clone(), world.stalls, world.frame
             t0 = time.time()
+            mid = None
             while time.time() - t0 < 6.0:
                 c.command({"type": "goal", "avatar": 0, "velocity": [rng.uniform(-0.05, 0.05), 1.2 + rng.uniform(-0.05, 0.05)]},
                           wait=False)
                 time.sleep(1.0 / hz)
+                if mid is None and time.time() - t0 >= 2.0:
+                    with world.lock:
+                        mid, t_mid = world.crowd.state(0)[[0, 2]].clone(), time.time()
             with world.lock:
-                moved = float((world.crowd.state(0)[[0, 2]] - start).norm())
+                end, t_end = world.crowd.state(0)[[0, 2]].clone(), time.time()
                 stalls, ticks, cuts = world.stalls - s0, world.frame - f0, world.crowd.avatars[0].epoch
-        print(f"{hz} Hz: moved {moved:.2f} m in 6 s, {stalls} stalled of {ticks} ticks, {cuts} cut(s)")
+        moved = float((end - start).norm())
+        speed = float((end - mid)[1]) / (t_end - t_mid)  # along the goal (+Z), after the start
+        print(f"{hz} Hz: moved {moved:.2f} m in 6 s, {speed:.2f} m/s after 2 s, {stalls} stalled of {ticks} ticks, {cuts} cut(s)")
         assert stalls <= 0.01 * ticks and cuts <= 2
         if SHIPPED.joinpath("model.safetensors").exists():
-            assert moved > 0.5
+            assert speed > 0.6  # half the goal speed: walking, not frozen (0.00 m) or shuffling (0.3 m/s)
     finally:
         r.stop()
 
