@@ -368,6 +368,16 @@ def _eval_impulses(a) -> int:
     return 0
 
 
+def _serve_args(a) -> list[str]:
+    """The runtime options of a bench command, as arguments for the `serve` it measures."""
+    out = ["--backend", a.backend] if a.backend else []
+    out += ["--steps", str(a.steps)] if a.steps else []
+    out += ["--no-processing"] if a.no_processing else []
+    for item in a.runtime or []:
+        out += ["--runtime", item]
+    return out
+
+
 def _bench(a) -> int:
     import torch
 
@@ -380,11 +390,11 @@ def _bench(a) -> int:
         from .eval.serve_bench import soak
         if a.soak <= 0 or not 1 <= a.avatars <= 64 or not 1 <= a.clients <= 64:
             raise ValueError("--soak SECONDS > 0, --avatars 1..64, --clients 1..64")
-        print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png), flush=True)
+        print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png, _serve_args(a)), flush=True)
         return 0
     if a.serve:
         from .eval.serve_bench import serve_bench
-        print(serve_bench(a.model))
+        print(serve_bench(a.model, serve_args=_serve_args(a)))
         return 0
     print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a)))
     return 0

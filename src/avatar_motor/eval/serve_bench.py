@@ -24,10 +24,11 @@ def _cpu_seconds(pid: int) -> float:
     return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _start(model: str, avatars: int, log=subprocess.DEVNULL) -> tuple[subprocess.Popen, str]:
+def _start(model: str, avatars: int, serve_args: list[str] | None = None) -> tuple[subprocess.Popen, str]:
+    """A `serve` subprocess; serve_args: runtime options passed on (e.g. ["--backend", "torch"])."""
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "avatar_motor.cli", "serve", "--model", model, "--avatars", str(avatars),
-                             "--port", str(port)], stdout=log, stderr=log)
+                             "--port", str(port), *(serve_args or [])], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     url = f"ws://127.0.0.1:{port}/ws"
     end = time.time() + 60
     while time.time() < end:
@@ -66,10 +67,10 @@ def reaction_latency(url: str, trials: int = 10) -> list[float]:
     return out
 
 
-def serve_bench(model: str, seconds: float = 10.0) -> str:
+def serve_bench(model: str, seconds: float = 10.0, serve_args: list[str] | None = None) -> str:
     lines = [f"serve bench: `avatar-motor serve --model {model}` in a subprocess, measured through the socket"]
     for avatars in (1, 8):
-        proc, url = _start(model, avatars)
+        proc, url = _start(model, avatars, serve_args)
         try:
             from ..client import Client
             time.sleep(2.0)
@@ -104,7 +105,7 @@ def _rss_mb(pid: int) -> float:
 
 
 def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window: float = 60.0,
-         png: str | None = None) -> str:
+         png: str | None = None, serve_args: list[str] | None = None) -> str:
     """`bench --soak`: a real `serve` subprocess with `avatars` idle avatars watched by `clients`
     clients for `seconds`. Per window: frames per second each client received, the server's
     resident memory, stalled ticks; over the run: frames with non-finite values and how far each
@@ -112,7 +113,7 @@ def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window:
     import threading
 
     from ..client import Client
-    proc, url = _start(model, avatars)
+    proc, url = _start(model, avatars, serve_args)
     rows, lock = [], threading.Lock()
     counts = [0] * clients
     nonfinite = [0]

@@ -149,6 +149,8 @@ def _lines(text: str, pos: int):
 
 
 def parse_bvh(text: str, src: str = "<string>") -> BVH:
+    if "\r" in text[:MAX_HIERARCHY_BYTES] and "\n" not in text[:MAX_HIERARCHY_BYTES]:
+        text = text.replace("\r", "\n")  # classic Mac line endings
     found = _MOTION.search(text, 0, MAX_HIERARCHY_BYTES)
     lines = text[:found.start() if found else MAX_HIERARCHY_BYTES].splitlines()  # the hierarchy only
     tokens: list[tuple[str, int]] = []

@@ -480,7 +480,16 @@ class Crowd:
     def stale(self, batch: SegmentBatch) -> bool:
         """Every avatar of the batch was cut or removed since it was prepared: its result would be
         dropped (read without the lock: a stale answer only costs one more network call)."""
-        return all(self.avatars.get(i) is None or self.avatars[i].epoch != e for i, e in zip(batch.avatars, batch.epochs))
+        return all((a := self.avatars.get(i)) is None or a.epoch != e for i, e in zip(batch.avatars, batch.epochs))
+
+    def abandon(self, batch: SegmentBatch) -> None:
+        """A prepared batch that will not be committed (it failed or was cancelled): the impulses
+        it took go back to their avatars, so the next segment still applies them."""
+        for k, (i, e) in enumerate(zip(batch.avatars, batch.epochs)):
+            a = self.avatars.get(i)
+            if a is not None and a.epoch == e and bool(batch.impulse[k]):
+                dv = batch.impulse_velocity[k].float()
+                a.pending_velocity = dv if a.pending_velocity is None else a.pending_velocity + dv
 
     def commit(self, batch: SegmentBatch, seg_w: torch.Tensor) -> None:
         """Append generated frames, unless a command cut the avatar's queue meanwhile; a change

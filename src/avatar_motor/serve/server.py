@@ -10,6 +10,7 @@ come and go freely; any number of viewers share one world.
 from __future__ import annotations
 
 import asyncio
+import hmac
 import ipaddress
 import json
 import logging
@@ -32,6 +33,7 @@ BURST = 240  # commands a client may send at once
 SUMMARY_EVERY = 10.0  # seconds between log lines about rejected or dropped messages
 GUESSES = 10  # wrong tokens from one address within LOCKOUT seconds before it is refused for LOCKOUT
 LOCKOUT = 60.0
+AUTH_TIMEOUT = 30.0  # seconds a socket may stay open without giving the token
 MAX_KEEP = 4  # frames a cut keeps at most (see World, Crowd._changed)
 
 
@@ -54,7 +56,7 @@ class Summary:
         self.example = example or self.example
         now = time.monotonic()
         if now - self.last >= self.every:
-            log.info("%s: %d in the last %.0f s (latest: %s)", self.what, self.count, self.every, self.example[:200])
+            log.info("%s: %d since the last such line (latest: %s)", self.what, self.count, self.example[:200])
             self.count, self.last = 0, now
 
 
@@ -127,14 +129,17 @@ class Server:
     def _locked_out(self, address: str) -> bool:
         now = time.monotonic()
         recent = [t for t in self.guesses.get(address, []) if now - t < LOCKOUT]
-        self.guesses[address] = recent
+        if recent:
+            self.guesses[address] = recent
+        else:
+            self.guesses.pop(address, None)  # no entry per address that never guessed
         return len(recent) >= GUESSES
 
     def _token_ok(self, given: str | None, address: str) -> bool:
         """Whether `given` is the token; a wrong one counts as a guess from that address."""
         if given is None or not self.token:
             return False
-        if given == self.token:
+        if hmac.compare_digest(given.encode(), self.token.encode()):
             return True
         self.guesses.setdefault(address, []).append(time.monotonic())
         log.warning("a wrong token from %s", address)
@@ -154,7 +159,7 @@ class Server:
         if self._locked_out(address):
             raise web.HTTPTooManyRequests(text=f"too many wrong tokens from {address}: wait {LOCKOUT:.0f} s")
         given = request.query.get("token")
-        has_token = self._token_ok(given, address)
+        has_token = request["has_token"] = self._token_ok(given, address)
         if self.token and not has_token and request.path != "/ws" and not request.path.startswith("/static/"):
             raise web.HTTPUnauthorized(text="token required: add ?token=... to the address")
         if not has_token:
@@ -214,10 +219,11 @@ class Server:
         ws = web.WebSocketResponse(max_msg_size=P.MAX_SOCKET_MESSAGE_BYTES, heartbeat=20)
         await ws.prepare(request)
         address = request.remote or "?"
-        client = Client(ws, address, needs_token=bool(self.token) and request.query.get("token") != self.token,
-                        rate=self.rate)
+        client = Client(ws, address, needs_token=bool(self.token) and not request.get("has_token", False), rate=self.rate)
         self.clients.add(client)
         sender = asyncio.create_task(self._sender(client))
+        if not client.authorized:
+            asyncio.get_running_loop().call_later(AUTH_TIMEOUT, self._close_unauthorized, client)
         await self._send_json(client, self._welcome(client))
         try:
             async for msg in ws:
@@ -232,7 +238,7 @@ class Server:
                                                        "error": "commands are JSON text messages, not binary"})
                 elif msg.type == WSMsgType.ERROR:
                     log.info("client connection error: %s", ws.exception())
-                if self._locked_out(address):
+                if not client.authorized and self._locked_out(address):
                     await ws.close(code=1008, message=b"too many wrong tokens")
                     break
                 # messages already received are returned without suspending: yield, so a client
@@ -242,6 +248,10 @@ class Server:
             self.clients.discard(client)
             sender.cancel()
         return ws
+
+    def _close_unauthorized(self, client: Client) -> None:
+        if not client.authorized and not client.ws.closed:
+            asyncio.ensure_future(client.ws.close(code=1008, message=b"no token given"))
 
     def _welcome(self, client: Client) -> dict:
         from ..body.skeleton import JOINT_NAMES, PARENTS
@@ -271,10 +281,10 @@ class Server:
                 was = client.authorized
                 if self._token_ok(cmd.get("token"), client.address):
                     client.authorized = True
-                if "format" in cmd:
-                    client.format = cmd["format"]
                 if not client.authorized:
                     raise P.ProtocolError("token required: send {\"type\": \"hello\", \"token\": ...}")
+                if "format" in cmd:
+                    client.format = cmd["format"]
                 await self._send_json(client, {"type": "ack", "id": cid, "ok": True, "format": client.format})
                 if not was:  # now the world may be described
                     await self._send_json(client, self._welcome(client))

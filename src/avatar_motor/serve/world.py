@@ -174,8 +174,12 @@ class World:
             return
         try:  # a command that cuts every avatar of the batch stops it: the cut segment starts sooner
             seg = self.crowd.compute(job, cancelled=lambda: self.crowd.stale(job))
-        except Cancelled:
-            return
+        except BaseException as e:
+            with self.lock:
+                self.crowd.abandon(job)
+            if isinstance(e, Cancelled):
+                return
+            raise
         with self.lock:
             self.crowd.commit(job, seg)
 
@@ -266,7 +270,7 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptor=None, probe: i
     t1 = min(seconds(1) for _ in range(2))
     tp = seconds(probe)
     per = max((tp - t1) / (probe - 1), 1e-4)
-    seg = motor.net.cfg.frames - 1  # new frames per segment
+    seg = motor.net.cfg.frames  # new frames per segment (x0, the frame before them, is not repeated)
     budget = 0.6 * seg / FPS
     cap = max(1, min(MAX_AVATARS, int((budget - (t1 - per)) / per)))
     keep = max(1, min(3, math.ceil(t1 * FPS) + 1))
