@@ -169,7 +169,10 @@ class World:
     def generate(self) -> None:
         """One batched segment for the avatars running low (worker thread)."""
         with self.lock:
-            job = self.crowd.prepare(LOOKAHEAD)
+            # with the avatars that run low, those that would within a segment: the crowd stays in
+            # phase, one batch per segment instead of many small ones each waiting on the other
+            # (a 1-hour soak, 8 avatars on one core, before: 4 % of ticks had an avatar stalled)
+            job = self.crowd.prepare(LOOKAHEAD + self.motor.net.cfg.frames)
         if job is None:
             return
         try:  # a command that cuts every avatar of the batch stops it: the cut segment starts sooner
