@@ -52,8 +52,8 @@ class World:
         self.lock = threading.RLock()
         self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptor)
         # frames kept when a command cuts an avatar's queue, shown while its new segment is made
-        # (Crowd._changed): 2 covers one segment's generation with the next tick's phase (a command
-        # shows within 67-100 ms); the server sets it from a measured segment, replays from the script
+        # (Crowd._changed): as many frames as a segment takes to make, so a command shows within
+        # 33-133 ms; the server sets it from the measured segment time, replays from the script
         self.crowd.keep_on_cut = 2
         self.frame = 0
         self.targets: dict[int, Target] = {}
@@ -276,6 +276,6 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptor=None, probe: i
     seg = motor.net.cfg.frames  # new frames per segment (x0, the frame before them, is not repeated)
     budget = 0.6 * seg / FPS
     cap = max(1, min(MAX_AVATARS, int((budget - (t1 - per)) / per)))
-    keep = max(1, min(3, math.ceil(t1 * FPS) + 1))
+    keep = max(1, min(3, math.ceil(t1 * FPS)))
     return cap, keep, (f"a segment takes {1e3 * t1:.0f} ms for 1 avatar, {1e3 * tp:.0f} ms for {probe}: "
                        f"this machine keeps {cap} avatars in real time; a command keeps {keep} queued frame(s)")
