@@ -64,6 +64,9 @@ class OnnxDenoiser:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads or torch.get_num_threads()
         opts.inter_op_num_threads = 1
+        # no busy-waiting between calls: its worker threads would take the CPU the server's clock,
+        # sockets and other sessions need (a flood test on one core fell to 15 fps beside them)
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         src = model if isinstance(model, bytes) else str(model)
         self.session = ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 

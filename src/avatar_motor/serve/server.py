@@ -30,6 +30,7 @@ log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
 RATE = 120.0  # commands per second per client (a 60-Hz stick and clicks fit; a flood does not)
 BURST = 240  # commands a client may send at once
+FLOOD = 2000  # messages over the limit within a second that close the connection
 SUMMARY_EVERY = 10.0  # seconds between log lines about rejected or dropped messages
 GUESSES = 10  # wrong tokens from one address within LOCKOUT seconds before it is refused for LOCKOUT
 LOCKOUT = 60.0
@@ -234,6 +235,11 @@ class Server:
                         await self._handle(client, msg.data)
                     else:
                         self.flooded.add(flooder)
+                        if client.dropped > FLOOD:  # reading a flood costs the clock: stop reading it
+                            log.warning("closed %s: more than %d messages over the rate limit within a second", address, FLOOD)
+                            await ws.close(code=1008, message=f"rate limit: more than {FLOOD} messages over the limit "
+                                                              "within a second; connection closed".encode())
+                            break
                 elif msg.type == WSMsgType.BINARY:
                     if client.admit():
                         await self._send_json(client, {"type": "error", "id": None,
