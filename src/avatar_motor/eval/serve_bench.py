@@ -182,7 +182,7 @@ def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        fig, (a1, a2, a3) = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
         ts = [r["t"] / 60 for r in rows]
         for k in range(clients):
             a1.plot(ts, [r["fps"][k] for r in rows], label=f"client {k}")
@@ -191,7 +191,9 @@ def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window:
         a1.legend(loc="lower right")
         a2.plot(ts, [r["rss"] for r in rows])
         a2.set_ylabel("server RSS (MB)")
-        a2.set_xlabel("minutes")
+        a3.bar(ts, np.diff([0] + [r["stalls"] for r in rows]), width=0.8 * (ts[1] - ts[0]) if len(ts) > 1 else 0.5)
+        a3.set_ylabel("stalled ticks per window")
+        a3.set_xlabel("minutes")
         fig.suptitle(f"soak: {avatars} avatars, {clients} clients")
         fig.savefig(png, dpi=80)
         lines.append(f"  plot: {png}")
