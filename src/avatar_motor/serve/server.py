@@ -15,7 +15,6 @@ import hmac
 import ipaddress
 import json
 import logging
-import math
 import threading
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from aiohttp.abc import AbstractAccessLogger
 
 from ..body.motion_state import FPS
 from . import protocol as P
-from .world import CommandError, World, measure_capacity
+from .world import CommandError, World, frames_to_keep, measure_capacity
 
 log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
@@ -36,7 +35,6 @@ SUMMARY_EVERY = 10.0  # seconds between log lines about rejected or dropped mess
 GUESSES = 10  # wrong tokens from one address within LOCKOUT seconds before it is refused for LOCKOUT
 LOCKOUT = 60.0
 AUTH_TIMEOUT = 30.0  # seconds a socket may stay open without giving the token
-MAX_KEEP = 4  # frames a cut keeps at most (see World, Crowd._changed)
 
 
 class AccessLogger(AbstractAccessLogger):
@@ -383,7 +381,7 @@ class Server:
                     # frame measured: reaction through the socket 133 ms instead of 100 (one core)
                     t = crowd.timings.get("total", 0.0)
                     ema = t if ema is None else 0.9 * ema + 0.1 * t
-                    crowd.keep_on_cut = max(1, min(MAX_KEEP, math.ceil(ema * FPS)))
+                    crowd.keep_on_cut = frames_to_keep(ema)
                 else:
                     time.sleep(0.002)
             except Exception:  # never let one bad batch kill the world

@@ -252,6 +252,14 @@ class World:
 
 
 
+MAX_KEEP = 4  # frames a cut keeps at most (133 ms)
+
+
+def frames_to_keep(seconds: float, cap: int = MAX_KEEP) -> int:
+    """The frames a cut keeps to cover `seconds` of segment generation: at least 1, at most cap."""
+    return max(1, min(cap, math.ceil(seconds * FPS)))
+
+
 def measure_capacity(motor: Motor, config: RuntimeConfig, adaptor=None, probe: int = 8) -> tuple[int, int, str]:
     """How many avatars this machine keeps in real time, and how many frames a cut must keep.
 
@@ -276,6 +284,6 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptor=None, probe: i
     seg = motor.net.cfg.frames  # new frames per segment (x0, the frame before them, is not repeated)
     budget = 0.6 * seg / FPS
     cap = max(1, min(MAX_AVATARS, int((budget - (t1 - per)) / per)))
-    keep = max(1, min(3, math.ceil(t1 * FPS)))
+    keep = frames_to_keep(t1, 3)
     return cap, keep, (f"a segment takes {1e3 * t1:.0f} ms for 1 avatar, {1e3 * tp:.0f} ms for {probe}: "
                        f"this machine keeps {cap} avatars in real time; a command keeps {keep} queued frame(s)")
