@@ -7,7 +7,11 @@ import json
 import sys
 from pathlib import Path
 
-DEFAULT_MODEL = Path(__file__).resolve().parents[2] / "models" / "primal-bandai"
+MODELS = Path(__file__).resolve().parents[2] / "models"
+BASE_MODEL = MODELS / "primal-bandai"  # what adaptors and few-step samplers are trained on
+# what the runtime runs unless told otherwise: the few-step generator (model card, "Few-step sampling")
+FEW_STEP_MODEL = MODELS / "primal-bandai-emdm"
+DEFAULT_MODEL = FEW_STEP_MODEL if (FEW_STEP_MODEL / "config.json").exists() else BASE_MODEL
 
 
 def _train(a) -> int:
@@ -21,6 +25,38 @@ def _train(a) -> int:
     tr = Trainer(cfg)
     print(f"training {cfg.name}: {sum(p.numel() for p in tr.net.parameters()) / 1e6:.2f} M parameters, "
           f"{len(tr.ds)} windows from {tr.ds.frames_total} frames, batch {cfg.batch}, to step {cfg.steps}, out {cfg.out}", flush=True)
+    tr.run()
+    print(f"done at step {tr.step}; EMA checkpoint in {Path(cfg.out) / 'checkpoint'}", flush=True)
+    return 0
+
+
+def _with_sets(d: dict, sets: list[str] | None) -> dict:
+    """--set NAME=VALUE (repeatable; VALUE read as JSON, else as text; NAME may be dotted for a
+    nested field, e.g. segment.mirror=false) over a config dict."""
+    for item in sets or []:
+        name, eq, value = item.partition("=")
+        if not eq or not name:
+            raise ValueError(f"--set takes NAME=VALUE, got {item!r}")
+        try:
+            v = json.loads(value)
+        except json.JSONDecodeError:
+            v = value
+        *path, last = name.split(".")
+        node = d
+        for p in path:
+            node = node.setdefault(p, {})
+        node[last] = v
+    return d
+
+
+def _distill(a) -> int:
+    from .train.fewstep import FewStepConfig, FewStepTrainer
+
+    d = json.loads(Path(a.config).read_text()) if a.config else {}
+    cfg = FewStepConfig.from_dict(_with_sets(d, a.set))
+    tr = FewStepTrainer(cfg)
+    print(f"training the {cfg.method} sampler from {cfg.base}: {len(tr.ds)} windows, batch {cfg.batch}, "
+          f"to step {cfg.steps}, out {cfg.out}", flush=True)
     tr.run()
     print(f"done at step {tr.step}; EMA checkpoint in {Path(cfg.out) / 'checkpoint'}", flush=True)
     return 0
@@ -207,7 +243,9 @@ def _load_adaptor(a, motor):
     if not getattr(a, "adaptor", None):
         return None
     from .model.adaptor import load_adaptor
-    model = load_adaptor(a.adaptor, motor.net, motor.name)
+    from .model.checkpoint import load_base
+    base = load_base(motor)  # a few-step model runs an adaptor's avatars on its base
+    model = load_adaptor(a.adaptor, base.net, base.name)
     model.guidance = a.guidance
     return model
 
@@ -359,6 +397,24 @@ def _eval_control(a) -> int:
     return 0
 
 
+def _eval_samplers(a) -> int:
+    from .eval.samplers import compare, format_rows, plot, save_json
+    from .model.checkpoint import load_checkpoint
+
+    models = {"ddpm": load_checkpoint(a.base)}
+    for kind in ("emdm", "consistency"):
+        if getattr(a, kind):
+            models[kind] = load_checkpoint(getattr(a, kind))
+    rows = compare(models, _caches(a.data), n=a.n, control_n=a.control_n, seed=a.seed, crowd_limit=a.max_avatars,
+                   progress=lambda m: print(m, flush=True))
+    print(format_rows(rows))
+    if a.png:
+        plot(rows, a.png)
+    if a.json:
+        save_json(rows, a.json)
+    return 0
+
+
 def _eval_impulses(a) -> int:
     from .eval.control import format_impulses, impulses
     from .model.checkpoint import load_checkpoint
@@ -396,7 +452,8 @@ def _bench(a) -> int:
         from .eval.serve_bench import serve_bench
         print(serve_bench(a.model, serve_args=_serve_args(a)))
         return 0
-    print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a)))
+    print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a),
+                baseline=load_checkpoint(a.baseline)))
     return 0
 
 
@@ -527,6 +584,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--threads", type=int)
     t.set_defaults(func=_train)
 
+    ds = sub.add_parser("distill", help="train a few-step sampler (EMDM or consistency) from a base (resumes from its out)")
+    ds.add_argument("--config", help="JSON config (configs/emdm.json, configs/consistency.json); defaults work without one")
+    ds.add_argument("--set", action="append", metavar="NAME=VALUE", help="override a config field (repeatable)")
+    ds.set_defaults(func=_distill)
+
     d = sub.add_parser("data", help="import and inspect motion").add_subparsers(dest="dcmd", required=True)
     i = d.add_parser("import", help="convert BVH (folder, file, .tar.xz or .zip) into the motion cache")
     i.add_argument("path")
@@ -550,7 +612,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ad = sub.add_parser("adapt", help="train an adaptor on a frozen base model: action labels or 2-D targets")
     ad.add_argument("task", choices=["actions", "reach"])
-    ad.add_argument("--model", default=str(DEFAULT_MODEL), help="the base model")
+    ad.add_argument("--model", default=str(BASE_MODEL), help="the base model")
     ad.add_argument("--data", nargs="*", help="motion caches (default: dataset-1)")
     ad.add_argument("--kind", choices=["controlnet", "omni", "finetune"], default="controlnet")
     ad.add_argument("--label-key", default="content", help="which clip label is the action (Bandai: content or style)")
@@ -651,7 +713,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, helptext in (("actions", "R-precision, ASR, ANCR of action adaptors (Table A3)"),
                            ("reach", "minimal pelvis distance to 8 targets (Table A4)")):
         e = ev.add_parser(name, help=helptext)
-        e.add_argument("--model", default=str(DEFAULT_MODEL))
+        e.add_argument("--model", default=str(BASE_MODEL), help="the base the adaptors were trained on")
         e.add_argument("--adaptors", nargs="+", required=True, help="NAME=FOLDER for each method to compare")
         _add_guidance_arg(e)
         e.add_argument("--data", nargs="*", help="motion caches the adaptors were trained on (default: dataset-1 dataset-2)")
@@ -668,8 +730,21 @@ def build_parser() -> argparse.ArgumentParser:
         _add_runtime_args(e)
         e.add_argument("--seed", type=int, default=0)
         e.set_defaults(func=_eval_adaptation)
+    es = ev.add_parser("samplers", help="DDPM 50/8, EMDM and consistency 4/2/1: quality and speed in one run")
+    es.add_argument("--base", default=str(BASE_MODEL), help="the DDPM base")
+    es.add_argument("--emdm", default=str(MODELS / "primal-bandai-emdm"), help="EMDM generator ('' to skip)")
+    es.add_argument("--consistency", default=str(MODELS / "primal-bandai-consistency"), help="consistency student ('' to skip)")
+    es.add_argument("--n", type=int, default=64, help="realism rollouts (8 s each)")
+    es.add_argument("--control-n", type=int, default=45)
+    es.add_argument("--max-avatars", type=int, default=1024)
+    es.add_argument("--seed", type=int, default=0)
+    es.add_argument("--data", nargs="*", help="motion caches (default: dataset-1 dataset-2)")
+    es.add_argument("--png", help="plot of quality against ms per segment")
+    es.add_argument("--json", help="write the rows as JSON")
+    es.set_defaults(func=_eval_samplers)
     b = sub.add_parser("bench", help="per-segment timings (Table A6), crowd throughput, reaction latency")
     b.add_argument("--model", default=str(DEFAULT_MODEL))
+    b.add_argument("--baseline", default=str(BASE_MODEL), help="the DDPM base the ratios are taken to (8 steps)")
     b.add_argument("--segments", type=int, default=10)
     b.add_argument("--threads", type=int)
     b.add_argument("--max-avatars", type=int, default=256)

@@ -16,6 +16,7 @@ X left, Y up, Z forward, the facing taken from the hips' left-right axis.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -34,13 +35,26 @@ SLICES = {
 _LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
 
 
-@dataclass
 class Unpacked:
-    root_pos: torch.Tensor  # (..., 3)
-    root_rot: torch.Tensor  # (..., 3, 3)
-    local_rot: torch.Tensor  # (..., 21, 3, 3)
-    joints: torch.Tensor  # (..., 22, 3)
-    velocities: torch.Tensor  # (..., 22, 3)
+    """The parts of states (..., 267): root_pos (..., 3), root_rot (..., 3, 3), local_rot
+    (..., 21, 3, 3), joints (..., 22, 3), velocities (..., 22, 3). The rotation matrices are made
+    from their 6D channels when first read: a caller that needs only locations pays for no
+    Gram-Schmidt (post-processing unpacks every segment several times)."""
+
+    def __init__(self, x: torch.Tensor):
+        lead = x.shape[:-1]
+        self.state = x
+        self.root_pos = x[..., SLICES["root_pos"]]
+        self.joints = x[..., SLICES["joints"]].reshape(*lead, NUM_JOINTS, 3)
+        self.velocities = x[..., SLICES["velocities"]].reshape(*lead, NUM_JOINTS, 3)
+
+    @cached_property
+    def root_rot(self) -> torch.Tensor:
+        return rot.sixd_to_matrix(self.state[..., SLICES["root_rot"]])
+
+    @cached_property
+    def local_rot(self) -> torch.Tensor:
+        return rot.sixd_to_matrix(self.state[..., SLICES["local_rot"]].reshape(*self.state.shape[:-1], 21, 6))
 
 
 def pack(root_pos, root_rot, local_rot, joints, velocities) -> torch.Tensor:
@@ -59,16 +73,9 @@ def pack(root_pos, root_rot, local_rot, joints, velocities) -> torch.Tensor:
 
 
 def unpack(x: torch.Tensor) -> Unpacked:
-    lead = x.shape[:-1]
     if x.shape[-1] != STATE_DIM:
         raise ValueError(f"motion state must have {STATE_DIM} values per frame, got {x.shape[-1]}")
-    return Unpacked(
-        x[..., SLICES["root_pos"]],
-        rot.sixd_to_matrix(x[..., SLICES["root_rot"]]),
-        rot.sixd_to_matrix(x[..., SLICES["local_rot"]].reshape(*lead, 21, 6)),
-        x[..., SLICES["joints"]].reshape(*lead, NUM_JOINTS, 3),
-        x[..., SLICES["velocities"]].reshape(*lead, NUM_JOINTS, 3),
-    )
+    return Unpacked(x)
 
 
 def joints_of(x: torch.Tensor) -> torch.Tensor:

@@ -165,34 +165,42 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
 
 
 def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256,
-          runtime: RuntimeConfig | None = None) -> str:
+          runtime: RuntimeConfig | None = None, baseline: Motor | None = None) -> str:
     """runtime: the configuration measured as the default (its backend also runs the crowd and
-    reaction rows); the same settings on the other backend are timed in the same run."""
+    reaction rows); the same settings on the other backend are timed in the same run. baseline:
+    the DDPM base (default: motor itself when it is one), timed at 50 steps and at 8 steps with
+    guidance and processing, the runtime before few-step sampling; ratios are to the latter."""
     default = runtime or RuntimeConfig()
-    plain50 = RuntimeConfig(steps=50, stages=())
+    base = baseline if baseline is not None else motor
+    if base.sampler["kind"] != "ddpm":
+        raise ValueError(f"bench baseline {base.name} is not a DDPM base; pass --baseline models/primal-bandai")
+    steps = default.steps or motor.sampler["steps"]
+    label = f"{'DDPM' if motor.sampler['kind'] == 'ddpm' else motor.sampler['kind']} {steps}"
     settings = [
-        ("50 steps", plain50, False),
-        ("50 steps + proc.", RuntimeConfig(steps=50), False),
-        ("50 steps + proc. + CBG", RuntimeConfig(steps=50), True),
-        ("10 steps + proc. + CBG", RuntimeConfig(steps=10), True),
-        (f"{default.steps} steps + proc. + CBG ({default.backend})", default, True),
+        ("DDPM 50", base, RuntimeConfig(steps=50, stages=()), False),
+        ("DDPM 50 + proc. + CBG", base, RuntimeConfig(steps=50), True),
+        ("DDPM 8 + proc. + CBG (torch)", base, RuntimeConfig(steps=8, backend="torch"), True),
+        ("DDPM 8 + proc. + CBG (onnxruntime)", base, RuntimeConfig(steps=8, backend="onnxruntime"), True),
+        (f"{label} + proc. + CBG ({default.backend})", motor, default, True),
     ]
     other = "onnxruntime" if default.backend == "torch" else "torch"
     try:
         __import__(other)
-        settings.append((f"{default.steps} steps + proc. + CBG ({other})", dataclasses.replace(default, backend=other), True))
+        settings.append((f"{label} + proc. + CBG ({other})", motor, dataclasses.replace(default, backend=other), True))
     except ImportError:
         pass
     rows = []
-    for name, cfg, goal in settings:
-        t = _time_segments(motor, cfg, 1, segments, goal, seed)
+    for name, m, cfg, goal in settings:
+        t = _time_segments(m, cfg, 1, segments, goal, seed)
         rows.append((name, t))
-    base = rows[0][1]["total"]
-    out = [f"bench: {motor.name}, {torch.get_num_threads()} threads, one avatar, ms per 0.5-s segment (mean of {segments})",
-           f"{'setting':40s} {'canon.':>7s} {'diffusion':>9s} {'post':>7s} {'total':>7s} {'vs 50-step':>10s}"]
+    ref = rows[2 if default.backend == "torch" else 3][1]["total"]
+    out = [f"bench: {motor.name} (baseline {base.name}), {torch.get_num_threads()} threads, one avatar, "
+           f"ms per 0.5-s segment (mean of {segments})",
+           f"{'setting':42s} {'canon.':>7s} {'diffusion':>9s} {'post':>7s} {'total':>7s} {'vs DDPM 8':>10s}"]
     for name, t in rows:
-        out.append(f"{name:40s} {t['canonicalize'] * 1e3:7.2f} {t['diffusion'] * 1e3:9.1f} {t['post'] * 1e3:7.2f} "
-                   f"{t['total'] * 1e3:7.1f} {t['total'] / base:9.2f}x")
+        out.append(f"{name:42s} {t['canonicalize'] * 1e3:7.2f} {t['diffusion'] * 1e3:9.1f} {t['post'] * 1e3:7.2f} "
+                   f"{t['total'] * 1e3:7.1f} {t['total'] / ref:9.2f}x")
+    out.append(f"(vs DDPM 8: ratio to today's 8-step DDPM with guidance and processing on {default.backend}, this run)")
     out.append("(step 2, the condition embedding, runs inside the first network call and is part of 'diffusion')")
     # crowd throughput: a batch keeps real time when a 0.5 s segment is generated in < 0.5 s
     out.append("crowd (default settings with guidance): avatars, ms per segment per batch, real-time factor")

@@ -148,7 +148,7 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     d_gen = float(M.nn_pose_distance(gen_poses, ref).mean())
     d_real = float(M.nn_pose_distance(real_q, ref).mean())
     res = {
-        "n": n, "seconds": seconds, "steps": cfg.steps,
+        "n": n, "seconds": seconds, "steps": cfg.steps or motor.sampler["steps"], "sampler": motor.sampler["kind"],
         "ASR": M.asr(J), "ASR_real": M.asr(Jr),
         "ANCR": M.ancr(J), "ANCR_real": M.ancr(Jr),
         "naturalness_ratio": d_gen / d_real, "pose_nn_dist": d_gen, "pose_nn_dist_real": d_real,
@@ -209,7 +209,7 @@ def format_realism(r: dict) -> str:
         ("jitter ratio", f"{r['jitter_ratio']:.2f}", "1.00", "<= 1.5"),
         ("alive ratio", f"{r['alive']:.2f}", f"{r['alive_real']:.2f}", "within 0.15 of real"),
     ]
-    out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps",
+    out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps ({r.get('sampler', 'ddpm')})",
            f"{'metric':34s} {'generated':>10s} {'real':>8s}  goal"]
     out += [f"{a:34s} {b:>10s} {c:>8s}  {d}" for a, b, c, d in rows]
     out.append(format_body(r))

@@ -17,6 +17,7 @@ from ..body.motion_state import SLICES, STATE_DIM
 from ..io.atomic import replace_folder
 from .denoiser import Denoiser, DenoiserConfig
 from .diffusion import Diffusion
+from .fewstep import sampler_of
 
 FORMAT = "avatar-motor-checkpoint/1"
 STATE_LAYOUT = {k: [v.start, v.stop] for k, v in SLICES.items()}
@@ -34,6 +35,11 @@ class Motor:
     diffusion: Diffusion
     config: dict
     path: Path | None = None
+
+    @property
+    def sampler(self) -> dict:
+        """How this network samples: {"kind": "ddpm" | "emdm" | "consistency", "steps": default, ...}."""
+        return sampler_of(self.config)
 
     @property
     def name(self) -> str:
@@ -103,6 +109,10 @@ def load_checkpoint(folder: str | Path) -> Motor:
     try:
         dcfg = DenoiserConfig.from_dict(cfg.get("denoiser"))  # every field checked before allocation
         norm = Normalizer.from_dict(cfg["normalizer"])
+        kind = sampler_of(cfg)["kind"]
+        if (dcfg.latent > 0) != (kind == "emdm"):
+            raise ValueError(f"a {kind} sampler with a latent of {dcfg.latent} does not exist: EMDM generators, and "
+                             "only they, have a latent")
     except (KeyError, ValueError, TypeError) as e:
         raise CheckpointError(f"{cfg_path}: invalid config ({e})") from None
     with torch.random.fork_rng():  # its random init is overwritten: loading leaves the caller's random stream alone
@@ -126,3 +136,21 @@ def load_checkpoint(folder: str | Path) -> Motor:
     net.load_state_dict({k: v.float() for k, v in weights.items()})
     net.eval()
     return Motor(net, norm, Diffusion(steps), cfg, folder)
+
+
+def load_base(motor: Motor) -> Motor:
+    """The DDPM base a few-step model was warm-started from: the checkpoint folder beside it named
+    in its sampler entry, checked against the recorded fingerprint. A base is its own base."""
+    s = motor.sampler
+    if s["kind"] == "ddpm":
+        return motor
+    from .adaptor import base_fingerprint
+    folder = (motor.path.parent if motor.path else Path(".")) / str(s.get("base"))
+    if not (folder / "config.json").exists():
+        raise CheckpointError(f"{motor.path}: its base {s.get('base')!r} is not beside it ({folder}); adaptors run on "
+                              "that base: put it there or pass the base as --model")
+    base = load_checkpoint(folder)
+    if base_fingerprint(base.net) != s.get("base_fingerprint"):
+        raise CheckpointError(f"{folder}: not the weights {motor.name} was trained from (the base was retrained "
+                              "since); rebuild the few-step model on this base")
+    return base

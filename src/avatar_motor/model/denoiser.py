@@ -27,6 +27,7 @@ class DenoiserConfig:
     heads: int = 8
     ff: int = 1024
     dropout: float = 0.1
+    latent: int = 0  # size of EMDM's latent z (0: a plain denoiser); z enters the condition token
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -43,7 +44,7 @@ class DenoiserConfig:
             raise ValueError(f"unknown denoiser fields {unknown}")
         cfg = cls(**d)
         ints = {"state_dim": (STATE_DIM, STATE_DIM), "frames": (2, 240), "width": (8, 4096), "depth": (1, 64),
-                "heads": (1, 64), "ff": (8, 16384)}
+                "heads": (1, 64), "ff": (8, 16384), "latent": (0, 1024)}
         for name, (lo, hi) in ints.items():
             v = getattr(cfg, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
@@ -128,10 +129,22 @@ class Denoiser(nn.Module):
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.depth))
         self.norm_out = nn.LayerNorm(w)
         self.out = nn.Linear(w, cfg.state_dim)
+        if cfg.latent:
+            # EMDM's latent through a small MLP, added into the condition token (ours sums the
+            # time and the initial state there already). Zero-initialised output: a generator
+            # warm-started from a base is that base exactly at its first step.
+            self.z_mlp = nn.Sequential(nn.Linear(cfg.latent, w), nn.SiLU(), nn.Linear(w, w), nn.SiLU(),
+                                       nn.Linear(w, w))
+            nn.init.zeros_(self.z_mlp[-1].weight)
+            nn.init.zeros_(self.z_mlp[-1].bias)
 
-    def condition(self, t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
-        """Summed time + initial-state embedding (B, width)."""
-        return self.time_mlp(timestep_embedding(t, self.cfg.width)) + self.x0_embed(x0)
+    def condition(self, t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+        """Summed time + initial-state (+ latent) embedding (B, width). A latent network given no z
+        uses z = 0, the mode of p(z)."""
+        c = self.time_mlp(timestep_embedding(t, self.cfg.width)) + self.x0_embed(x0)
+        if self.cfg.latent:
+            c = c + self.z_mlp(z if z is not None else x0.new_zeros(len(x0), self.cfg.latent))
+        return c
 
     def tokens(self, x_t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         h = self.in_proj(x_t)
@@ -144,9 +157,10 @@ class Denoiser(nn.Module):
             h = h[:, 1:]
         return self.out(self.norm_out(h))
 
-    def forward(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
-        """t (B,) long, x_t (B, frames, D) noisy normalized segment, x0 (B, D) normalized initial state."""
-        cond = self.condition(t, x0)
+    def forward(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+        """t (B,) long, x_t (B, frames, D) noisy normalized segment, x0 (B, D) normalized initial
+        state, z (B, latent) EMDM's latent (latent networks only)."""
+        cond = self.condition(t, x0, z)
         h = self.tokens(x_t, cond)
         for blk in self.blocks:
             h = blk(h, cond)

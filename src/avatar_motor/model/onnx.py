@@ -2,7 +2,8 @@
 "onnxruntime"), and the file an engine loads (Unity Sentis, Unreal NNE; docs/onnx.md).
 
 Graph: inputs `t` (B,) int64 diffusion step, `x_t` (B, frames, 267) float32 noisy normalised
-segment, `x0` (B, 267) float32 normalised initial state; output `x0_hat` (B, frames, 267) float32,
+segment, `x0` (B, 267) float32 normalised initial state, and for an EMDM generator `z` (B, latent)
+float32 its latent, drawn from N(0, I) at every step; output `x0_hat` (B, frames, 267) float32,
 the network's estimate of the clean normalised segment. B is dynamic.
 """
 from __future__ import annotations
@@ -36,6 +37,9 @@ def export_bytes(net: Denoiser) -> bytes:
     _require("onnx")
     cfg = net.cfg
     example = (torch.tensor([1, 2]), torch.zeros(2, cfg.frames, cfg.state_dim), torch.zeros(2, cfg.state_dim))
+    names = list(INPUTS)
+    if cfg.latent:
+        example, names = (*example, torch.zeros(2, cfg.latent)), [*names, "z"]
     buf = io.BytesIO()
     was = net.training
     net.eval()
@@ -44,8 +48,8 @@ def export_bytes(net: Denoiser) -> bytes:
             # the TorchScript exporter (no onnxscript needed) is deprecated upstream and warns
             # about the fixed q/k/v split; the parity test checks what it writes
             warnings.simplefilter("ignore")
-            torch.onnx.export(net, example, buf, dynamo=False, opset_version=OPSET, input_names=list(INPUTS),
-                              output_names=[OUTPUT], dynamic_axes={k: {0: "batch"} for k in (*INPUTS, OUTPUT)})
+            torch.onnx.export(net, example, buf, dynamo=False, opset_version=OPSET, input_names=names,
+                              output_names=[OUTPUT], dynamic_axes={k: {0: "batch"} for k in (*names, OUTPUT)})
     finally:
         net.train(was)
     return buf.getvalue()
@@ -70,9 +74,11 @@ class OnnxDenoiser:
         src = model if isinstance(model, bytes) else str(model)
         self.session = ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 
-    def __call__(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+    def __call__(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         feed = {"t": t.long().numpy(), "x_t": np.ascontiguousarray(x_t.float().numpy()),
                 "x0": np.ascontiguousarray(x0.float().numpy())}
+        if z is not None:
+            feed["z"] = np.ascontiguousarray(z.float().numpy())
         return torch.from_numpy(self.session.run([OUTPUT], feed)[0])
 
 

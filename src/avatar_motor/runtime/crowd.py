@@ -46,7 +46,9 @@ log = logging.getLogger("avatar_motor.runtime")
 
 @dataclass
 class RuntimeConfig:
-    steps: int = 8  # denoising steps per segment (PRIMAL: 10 "not visibly inferior" to 50; 8 measured as good here)
+    # denoising steps per segment; 0: the model's own (8 for a DDPM base; a few-step model's
+    # checkpoint names its default, and it samples in 1, 2 or 4)
+    steps: int = 0
     # post-processing stages by name, in order (runtime/stages.py); a body stage (leg_ik or fk)
     # always ends the list, so every frame that leaves the runtime is one body
     stages: tuple[str, ...] = DEFAULT_STAGES
@@ -176,6 +178,7 @@ class Crowd:
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
         self.sampler = Sampler(motor, self.cfg, adaptor)
+        self.cfg = self.sampler.cfg  # its steps resolved for this model
         self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
         self._next_id = 0

@@ -18,8 +18,20 @@ from ..body.motion_state import FPS, SLICES, facing_yaw, joints_of, pack, unpack
 def _pack_moving(x0: torch.Tensor, root_pos, root_rot, local_rot, joints: torch.Tensor) -> torch.Tensor:
     """Pack a segment (B, N, ...) whose velocities are the backward differences of its joints,
     the first one taken from the initial state x0 (B, 267)."""
-    prev = torch.cat((unpack(x0).joints[:, None], joints[:, :-1]), 1)
+    prev = torch.cat((joints_of(x0)[:, None], joints[:, :-1]), 1)
     return pack(root_pos, root_rot, local_rot, joints, (joints - prev) * FPS)
+
+
+def _moved(x0: torch.Tensor, seg: torch.Tensor, root_pos: torch.Tensor, joints: torch.Tensor,
+           root_rot: torch.Tensor | None = None) -> torch.Tensor:
+    """seg (B, N, 267) with new root positions and joint locations (and root rotation), its local
+    rotations' channels kept as they are (no round trip through matrices), velocities the backward
+    differences of the new locations, the first from x0."""
+    B, N, _ = seg.shape
+    prev = torch.cat((joints_of(x0)[:, None], joints[:, :-1]), 1)
+    parts = [root_pos, rot.matrix_to_6d(root_rot) if root_rot is not None else seg[..., SLICES["root_rot"]],
+             seg[..., SLICES["local_rot"]], joints.reshape(B, N, 66), ((joints - prev) * FPS).reshape(B, N, 66)]
+    return torch.cat(parts, -1)
 
 
 def _move_frames(x0: torch.Tensor, u, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -27,7 +39,7 @@ def _move_frames(x0: torch.Tensor, u, R: torch.Tensor, t: torch.Tensor) -> torch
     t (B, N, 3); local rotations are kept and velocities recomputed."""
     joints = torch.einsum("bnij,bnkj->bnki", R, u.joints) + t[:, :, None]
     root_pos = (R @ u.root_pos[..., None])[..., 0] + t
-    return _pack_moving(x0, root_pos, R @ u.root_rot, u.local_rot, joints)
+    return _moved(x0, u.state, root_pos, joints, R @ u.root_rot)
 
 
 _LEGS = [tuple(JOINT_INDEX[f"{side}_{j}"] for j in ("hip", "knee", "ankle", "foot")) for side in ("left", "right")]
@@ -149,7 +161,7 @@ def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) ->
     rhs = u.joints.reshape(B, N, 66) + weight * D.T @ b
     joints = torch.linalg.solve(A, rhs).reshape(B, N, 22, 3)
     root_pos = u.root_pos + (joints[:, :, 0] - u.joints[:, :, 0])
-    return _pack_moving(x0, root_pos, u.root_rot, u.local_rot, joints)
+    return _moved(x0, seg, root_pos, joints)
 
 
 def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
@@ -359,8 +371,13 @@ def physical_faults(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor) 
     rest = offsets[:, None, 1:].norm(dim=-1)
     travel = (J[:, :, 0, [0, 2]] - joints_of(x0)[:, None, 0, [0, 2]]).norm(dim=-1)  # (B, N)
     allowed = MAX_SPEED * torch.arange(1, seg.shape[1] + 1, dtype=seg.dtype) / FPS
-    for k in range(len(seg)):
-        if not torch.isfinite(seg[k]).all():
+    ok = (torch.isfinite(seg).flatten(1).all(1) & (J[:, :, 0, 1].amin(1) >= PELVIS_HEIGHT[0])
+          & (J[:, :, 0, 1].amax(1) <= PELVIS_HEIGHT[1]) & (travel <= allowed).all(1)
+          & ((bones - rest).abs().flatten(1).amax(1) <= BONE_TOLERANCE))
+    for k, fine in enumerate(ok.tolist()):
+        if fine:  # the common case, decided for the whole batch at once
+            out.append(None)
+        elif not torch.isfinite(seg[k]).all():
             out.append("non-finite values")
         elif not (PELVIS_HEIGHT[0] <= float(J[k, :, 0, 1].min()) and float(J[k, :, 0, 1].max()) <= PELVIS_HEIGHT[1]):
             out.append(f"pelvis height {float(J[k, :, 0, 1].min()):.3g}..{float(J[k, :, 0, 1].max()):.3g} m "

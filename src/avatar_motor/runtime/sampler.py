@@ -5,13 +5,15 @@ condition the network, gradient guidance steers the denoised estimate, and an ad
 labels or reaching targets) replaces the base network for the avatars it steers."""
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from ..body import rotations as rot
 from ..body.motion_state import SLICES, STATE_DIM, Transform
-from ..body.skeleton import JOINT_INDEX
 from ..model.checkpoint import Motor
 from .guidance import facing_loss_and_grad, facing_of, move_loss_and_grad, path_loss_and_grad
+from ..model import fewstep
 from ..model.onnx import onnx_denoiser
 from .stages import SegmentBatch
 
@@ -25,6 +27,20 @@ BACKENDS = ("torch", "onnxruntime")
 STEER_JOINTS = list(range(22))
 
 
+# DDPM steps for an adaptor's avatars when the runtime's model is a few-step one (the adaptor
+# runs on its base, as trained: the runtime's 8-step default before few-step sampling)
+ADAPTOR_STEPS = 8
+
+
+def _subset(batch: SegmentBatch, rows: torch.Tensor) -> SegmentBatch:
+    """The rows `rows` of a batch (tensors indexed, lists picked)."""
+    picked = {}
+    for f in dataclasses.fields(batch):
+        v = getattr(batch, f.name)
+        picked[f.name] = v[rows] if torch.is_tensor(v) else [v[int(k)] for k in rows]
+    return SegmentBatch(**picked)
+
+
 class Cancelled(Exception):
     """A batch stopped because every avatar in it was cut meanwhile."""
 
@@ -32,8 +48,16 @@ class Cancelled(Exception):
 class Sampler:
     def __init__(self, motor: Motor, cfg, adaptor=None):
         """cfg: the RuntimeConfig (steps, eta, steering and guidance weights); adaptor: an
-        AdaptedDenoiser on motor's network, or None."""
+        AdaptedDenoiser on motor's network, or None. self.cfg is cfg with its steps resolved (0:
+        the model's own default)."""
+        self.kind = motor.sampler["kind"]
+        steps = cfg.steps or motor.sampler["steps"]
+        fewstep.check_steps(self.kind, steps)
+        cfg = dataclasses.replace(cfg, steps=steps)
         self.motor, self.cfg, self.adaptor = motor, cfg, adaptor
+        if adaptor is not None and self.kind != "ddpm" and adaptor.base_fingerprint != motor.sampler.get("base_fingerprint"):
+            raise ValueError(f"the adaptor was trained on other base weights than {motor.name}'s base "
+                             f"{motor.sampler.get('base')!r}; retrain it on that base")
         if cfg.backend not in BACKENDS:
             raise ValueError(f"runtime backend must be one of {BACKENDS}, got {cfg.backend!r}")
         # the base network as ONNX Runtime runs it (an adaptor's avatars use torch)
@@ -42,7 +66,22 @@ class Sampler:
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
         """Segments (B, N, 267) in the canonical frames whose world transforms are tf, from the
         canonical initial states x0c (B, 267). cancelled() -> True stops between network calls
-        (raises Cancelled): the batch is no longer wanted."""
+        (raises Cancelled): the batch is no longer wanted.
+
+        With a few-step model, the avatars an adaptor steers are sampled as the adaptor was
+        trained: its base with DDPM (ADAPTOR_STEPS); the others with the few-step chain. Rows are
+        independent, so the split changes no avatar's motion."""
+        if self.kind != "ddpm" and self.adaptor is not None and any(batch.adapted):
+            on = torch.tensor(batch.adapted)
+            out = torch.empty(len(batch), self.motor.net.cfg.frames, STATE_DIM, dtype=torch.float64)
+            for rows, ddpm in ((on.nonzero()[:, 0], True), ((~on).nonzero()[:, 0], False)):
+                if len(rows):
+                    out[rows] = self._sample(_subset(batch, rows), x0c[rows], Transform(tf.R[rows], tf.t[rows]),
+                                             cancelled, ddpm)
+            return out
+        return self._sample(batch, x0c, tf, cancelled, self.kind == "ddpm")
+
+    def _sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled, ddpm: bool) -> torch.Tensor:
         cfg, motor = self.cfg, self.motor
         Rt = tf.R.transpose(-1, -2)
         # the network sees the impulse in x0's velocities; the blending after it keeps the true x0
@@ -57,12 +96,17 @@ class Sampler:
         if cancelled is not None:
             inner = denoise
 
-            def denoise(x_t, t):
+            def denoise(x_t, t, z=None):
                 if cancelled():
                     raise Cancelled
-                return inner(x_t, t)
-        seg_n = motor.diffusion.sample(denoise, (len(batch), N, STATE_DIM), cfg.steps,
-                                       batch.gens, guide, cfg.eta)
+                return inner(x_t, t, z)
+        shape = (len(batch), N, STATE_DIM)
+        if ddpm:
+            steps = cfg.steps if self.kind == "ddpm" else ADAPTOR_STEPS
+            seg_n = motor.diffusion.sample(denoise, shape, steps, batch.gens, guide, cfg.eta)
+        else:
+            seg_n = fewstep.sample(self.kind, motor.diffusion, denoise, shape, cfg.steps, batch.gens, guide,
+                                   motor.net.cfg.latent)
         return motor.norm.decode(seg_n).double()
 
     def _denoiser(self, batch: SegmentBatch, tf, cond):
@@ -70,7 +114,9 @@ class Sampler:
         not steer, which is the base model exactly)."""
         net, ad = self.net, self.adaptor
         if ad is None or not any(batch.adapted):
-            return lambda x_t, t: net(t, x_t, cond)
+            if self.motor.net.cfg.latent:
+                return lambda x_t, t, z=None: net(t, x_t, cond, z)
+            return lambda x_t, t, z=None: net(t, x_t, cond)
         scale = torch.tensor([s if on else 0.0 for on, s in zip(batch.adapted, batch.control_scales)])
         if ad.cfg.control == "label":
             y = torch.tensor([lb if lb is not None else ad.null_label for lb in batch.labels])
@@ -82,7 +128,7 @@ class Sampler:
                     local = Rt[k] @ (torch.tensor([tg[0], 0.0, tg[1]]) - tf.t[k].float())
                     y[k] = local[[0, 2]]
         s = scale[:, None, None]
-        return lambda x_t, t: ad(t, x_t, cond, y, scale=s)
+        return lambda x_t, t, z=None: ad(t, x_t, cond, y, scale=s)
 
     def _steer(self, x0c: torch.Tensor, v_goals: list, f_goals: list, Rt: torch.Tensor) -> None:
         """Steering as an impulse (our addition): the network starts each segment already moving the
@@ -90,25 +136,29 @@ class Sampler:
         (horizontally, by steer_impulse x the difference), and the body gets a yaw rate toward the
         facing goal (turn_impulse x the angle, rad/s), as velocities about the pelvis."""
         cfg = self.cfg
-        vel = x0c[:, SLICES["velocities"]].view(len(x0c), 22, 3)
-        J = x0c[:, SLICES["joints"]].view(len(x0c), 22, 3)
-        for k, (v, f) in enumerate(zip(v_goals, f_goals)):
-            angle = None
-            if f is not None:
-                goal_f = Rt[k] @ f.double()
-                z, _ = facing_of(x0c[k])
-                angle = torch.atan2(z[2] * goal_f[0] - z[0] * goal_f[2], (z * goal_f).sum())  # about +Y, z -> goal
-            if v is not None and cfg.steer_impulse > 0:
-                goal = Rt[k] @ v.double()
-                if angle is not None and cfg.steer_with_body > 0:
-                    goal = rot.yaw_matrix(-cfg.steer_with_body * angle) @ goal  # back toward where the body faces
-                dv = cfg.steer_impulse * (goal - vel[k, STEER_JOINTS].mean(0))
-                dv[1] = 0.0
-                vel[k, STEER_JOINTS] += dv
-            if angle is not None and cfg.turn_impulse > 0:
-                w = cfg.turn_impulse * angle  # a signal to the network more than a physical rate
-                r = J[k] - J[k, 0]
-                vel[k] += torch.stack((w * r[:, 2], torch.zeros_like(w * r[:, 0]), -w * r[:, 0]), -1)
+        B = len(x0c)
+        has_v = torch.tensor([v is not None for v in v_goals])
+        has_f = torch.tensor([f is not None for f in f_goals])
+        if not bool(has_v.any() or has_f.any()):
+            return
+        vel = x0c[:, SLICES["velocities"]].view(B, 22, 3)
+        J = x0c[:, SLICES["joints"]].view(B, 22, 3)
+        z3 = torch.zeros(3, dtype=torch.float64)
+        local = lambda goals: (Rt @ torch.stack([z3 if g is None else g.double() for g in goals])[..., None])[..., 0]  # noqa: E731
+        g_v, g_f = local(v_goals), local(f_goals)  # (B, 3) in each body's canonical frame
+        z, _ = facing_of(x0c)
+        angle = torch.atan2(z[:, 2] * g_f[:, 0] - z[:, 0] * g_f[:, 2], (z * g_f).sum(-1))  # about +Y, z -> goal
+        angle = torch.where(has_f, angle, torch.zeros_like(angle))
+        if cfg.steer_impulse > 0 and bool(has_v.any()):
+            if cfg.steer_with_body > 0:  # back toward where the body faces (angle 0 without a facing goal)
+                g_v = (rot.yaw_matrix(-cfg.steer_with_body * angle) @ g_v[..., None])[..., 0]
+            dv = cfg.steer_impulse * (g_v - vel[:, STEER_JOINTS].mean(1))
+            dv[:, 1] = 0.0
+            vel[:, STEER_JOINTS] += torch.where(has_v[:, None], dv, torch.zeros_like(dv))[:, None]
+        if cfg.turn_impulse > 0 and bool(has_f.any()):
+            w = (cfg.turn_impulse * angle)[:, None]  # a signal to the network more than a physical rate
+            r = J - J[:, :1]
+            vel += torch.stack((w * r[..., 2], torch.zeros_like(r[..., 0]), -w * r[..., 0]), -1)
 
     def _guidance(self, v_goals: list, f_goals: list, Rt: torch.Tensor, x0c: torch.Tensor):
         cfg = self.cfg

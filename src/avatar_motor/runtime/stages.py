@@ -115,7 +115,13 @@ def _free_body(cfg, ctx: StageContext, seg):
     # the network's rotations pose a free body more naturally than its joint locations do, so the
     # root-motion stages work on that body; a steered body keeps the predicted locations, as its
     # rotations lag the steering and their feet glide (model card, "One body")
-    return torch.where(ctx.batch.steered[:, None, None], seg, solve_body(ctx.x0, seg, ctx.offsets))
+    free = (~ctx.batch.steered).nonzero()[:, 0]
+    if len(free) == len(seg):
+        return solve_body(ctx.x0, seg, ctx.offsets)
+    out = seg.clone()
+    if len(free):  # only the free rows are solved (rows are independent): a steered crowd skips it
+        out[free] = solve_body(ctx.x0[free], seg[free], ctx.offsets[free])
+    return out
 
 
 def _leg_ik(cfg, ctx: StageContext, seg):

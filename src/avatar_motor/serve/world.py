@@ -248,7 +248,7 @@ class World:
     def stats(self) -> dict:
         return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd),
                 "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls, "model": self.motor.name,
-                "steps": self.config.steps}
+                "steps": self.crowd.cfg.steps}
 
 
 

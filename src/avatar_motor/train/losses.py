@@ -38,3 +38,22 @@ def motion_loss(x0_hat_n: torch.Tensor, target_n: torch.Tensor, x_init: torch.Te
     l_fkv = ((v_hat - velocities_of(target)) ** 2).sum(-1).mean()
     total = simple + fk * l_fk + fkv * l_fkv
     return {"loss": total, "simple": simple.detach(), "fk": l_fk.detach(), "fkv": l_fkv.detach()}
+
+
+# a foot joint is planted where the real motion holds it low and still: EMDM's contact mask f_i
+CONTACT_HEIGHT = 0.12  # metres above the ground (the ankles stand at about 8 cm)
+CONTACT_SPEED = 0.3  # m/s
+
+
+def foot_loss(x0_hat_n: torch.Tensor, target_n: torch.Tensor, x_init: torch.Tensor, shapes: torch.Tensor,
+              norm: Normalizer) -> torch.Tensor:
+    """EMDM Eq. 9: the speed (m/s) of the generated body's ankles and feet (FK of its rotations)
+    squared, where the real segment has them planted."""
+    from ..body.skeleton import ANKLES_AND_FEET
+    J_hat = fk_joints(norm.decode(x0_hat_n), shapes)[:, :, ANKLES_AND_FEET]
+    J = joints_of(norm.decode(target_n))[:, :, ANKLES_AND_FEET]
+    first = joints_of(x_init)[:, None, ANKLES_AND_FEET]
+    v_hat = (J_hat - torch.cat((first, J_hat[:, :-1]), 1)) * FPS
+    v = (J - torch.cat((first, J[:, :-1]), 1)) * FPS
+    planted = ((J[..., 1] < CONTACT_HEIGHT) & (v.norm(dim=-1) < CONTACT_SPEED)).to(v_hat.dtype)
+    return ((v_hat ** 2).sum(-1) * planted).mean()

@@ -159,13 +159,10 @@ class Trainer:
         self.net.load_state_dict(motor.net.state_dict())
 
     def _resume(self) -> None:
-        # a kill may have landed inside a save: take the newest complete copies back first
-        recover_folder(self.out / "checkpoint", checkpoint_complete)
-        st = recover_folder(self.state_dir, _state_complete)
-        if st is None:
+        saved = read_state(self.out / "checkpoint", self.state_dir)
+        if saved is None:
             return
-        meta = json.loads((st / "state.json").read_text())
-        tensors = load_file(str(st / "state.safetensors"))
+        st, meta, tensors = saved
         self.net.load_state_dict({k[4:]: v for k, v in tensors.items() if k.startswith("net.")})
         self.ema.shadow = {k[4:]: v for k, v in tensors.items() if k.startswith("ema.")}
         self.opt.load_state_dict(_unflatten_optimizer(tensors, meta["optimizer"]))
@@ -275,6 +272,16 @@ class Trainer:
         return history
 
 
+def read_state(checkpoint: Path, state_dir: Path):
+    """(folder, meta, tensors) of a run's saved training state, or None for a new run. A kill may
+    have landed inside a save: the newest complete copies of both folders are taken back first."""
+    recover_folder(checkpoint, checkpoint_complete)
+    st = recover_folder(state_dir, _state_complete)
+    if st is None:
+        return None
+    return st, json.loads((st / "state.json").read_text()), load_file(str(st / "state.safetensors"))
+
+
 def _state_complete(folder: Path) -> bool:
     """A training state whose files were all written (state.json is written last)."""
     try:
@@ -308,7 +315,7 @@ def _jsonable(d):
     return d
 
 
-def plot_losses(log_path: Path, png: Path) -> None:
+def plot_losses(log_path: Path, png: Path, keys=("loss", "simple", "fk", "fkv")) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -318,7 +325,7 @@ def plot_losses(log_path: Path, png: Path) -> None:
     if not rows:
         return
     fig, ax = plt.subplots(figsize=(7, 4))
-    for key in ("loss", "simple", "fk", "fkv"):
+    for key in keys:
         ax.plot([r["step"] for r in rows], [r[key] for r in rows], label=key)
     ax.set_yscale("log")
     ax.set_xlabel("step")
