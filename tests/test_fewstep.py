@@ -1,6 +1,7 @@
 """Few-step samplers (model/fewstep.py, train/fewstep.py): the chains, the posterior step, the
 discriminator, the latent generator, training with exact resume, and the runtime on them."""
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -137,10 +138,11 @@ def test_runtime_on_a_few_step_model_is_deterministic_and_a_crowd_equals_avatars
     assert crowd.cfg.steps == 2  # the checkpoint's default
     assert torch.equal(a, run(1)[1])
     # the first avatar's motion does not depend on the others (float32 batch arithmetic differs by
-    # ~1e-6; velocities are differences x 30 fps)
+    # ~1e-6 per operation, through the network and post-processing of a random network's wild
+    # motion; velocities are differences x 30 fps)
     from avatar_motor.body.motion_state import SLICES
     d = (a - run(3)[1]).abs()
-    assert d[..., :SLICES["velocities"].start].max() < 1e-4 and d[..., SLICES["velocities"]].max() < 3e-3
+    assert d[..., :SLICES["velocities"].start].max() < 2e-3 and d[..., SLICES["velocities"]].max() < 6e-2
     assert not torch.equal(a, run(1, seed=6)[1])
     with pytest.raises(ValueError, match="1, 2 or 4 steps"):
         Crowd(motor, RuntimeConfig(steps=8, backend="torch"))
@@ -241,3 +243,31 @@ def test_with_a_few_step_model_an_adaptors_avatars_run_on_its_base_as_trained(tm
     other = AdaptedDenoiser(tiny_motor(tmp_path / "other", seed=9).net, AdaptorConfig(labels=["wave"]))
     with pytest.raises(ValueError, match="other base weights"):
         Crowd(gen, RuntimeConfig(backend="torch"), 0, other)
+
+
+SHIPPED_FEW_STEP = Path(__file__).resolve().parents[1] / "models" / "primal-bandai-emdm"
+
+
+@pytest.mark.skipif(not (SHIPPED_FEW_STEP / "model.safetensors").exists(), reason="the shipped few-step model is absent")
+def test_the_shipped_few_step_model_is_bound_to_its_base_and_streams_one_body_deterministically():
+    from avatar_motor.body.motion_state import body_mismatch
+    from avatar_motor.body.skeleton import rest_offsets
+    from avatar_motor.cli import DEFAULT_MODEL
+    from avatar_motor.model.checkpoint import load_base
+    motor = load_checkpoint(SHIPPED_FEW_STEP)
+    assert DEFAULT_MODEL == SHIPPED_FEW_STEP  # what the runtime's commands run by default
+    assert motor.sampler["kind"] == "emdm" and motor.sampler["steps"] == 1
+    assert "non-commercial" in motor.config["licence"]
+    assert load_base(motor).name == "primal-bandai"  # beside it, with the recorded fingerprint
+
+    def run():
+        crowd = Crowd(motor, RuntimeConfig(), seed=0)
+        ids = [crowd.spawn(position=(2.0 * k, 0.0)) for k in range(2)]
+        crowd.set_goal(ids[0], (1.0, 0.5))
+        return torch.cat([torch.stack([crowd.step_segment()[i] for i in ids]) for _ in range(4)], 1)
+
+    X = run()
+    assert torch.equal(X, run())
+    assert float(body_mismatch(X.double(), rest_offsets(torch.zeros(2, 6), torch.float64)[:, None]).max()) < 1e-3
+    assert float(X[..., 135:201].reshape(2, -1, 22, 3)[..., 1].min()) > -0.02  # nothing under the ground
+    assert float((X[0, -1, :3] - X[0, 0, :3]).norm()) > 0.5  # the steered one walks

@@ -177,8 +177,8 @@ def test_a_world_refuses_more_avatars_than_it_keeps_in_real_time(tmp_path):
     world = World(tiny_motor(tmp_path), seed=0)
     r = Running(world)
     try:
-        from avatar_motor.serve.world import MAX_KEEP
-        assert 1 <= world.max_avatars <= 64 and 1 <= world.crowd.keep_on_cut <= MAX_KEEP
+        from avatar_motor.serve.world import MAX_AVATARS, MAX_KEEP
+        assert 1 <= world.max_avatars <= MAX_AVATARS and 1 <= world.crowd.keep_on_cut <= MAX_KEEP
         assert r.server.per_client == max(1, (world.max_avatars + 1) // 2)
     finally:
         r.stop()

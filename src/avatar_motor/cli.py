@@ -268,8 +268,10 @@ def _export_onnx(a) -> int:
     path = export_file(motor.net, a.out)
     cfg = motor.net.cfg
     print(f"{path}: {motor.name} as ONNX (opset 17, float32): inputs t (B,) int64, x_t (B, {cfg.frames}, {cfg.state_dim}) "
-          f"float32, x0 (B, {cfg.state_dim}) float32; output x0_hat (B, {cfg.frames}, {cfg.state_dim}); "
-          f"the normalisation and diffusion schedule are in {motor.path / 'config.json'} (docs/onnx.md). "
+          f"float32, x0 (B, {cfg.state_dim}) float32"
+          + (f", z (B, {cfg.latent}) float32 (N(0, I) at every step)" if cfg.latent else "")
+          + f"; output x0_hat (B, {cfg.frames}, {cfg.state_dim}); sampler {motor.sampler['kind']} "
+          f"{motor.sampler['steps']} step(s); the normalisation and schedule are in {motor.path / 'config.json'} (docs/onnx.md). "
           f"{motor.config.get('licence', '')}")
     return 0
 
@@ -444,8 +446,8 @@ def _bench(a) -> int:
         torch.set_num_threads(a.threads)
     if a.soak:
         from .eval.serve_bench import soak
-        if a.soak <= 0 or not 1 <= a.avatars <= 64 or not 1 <= a.clients <= 64:
-            raise ValueError("--soak SECONDS > 0, --avatars 1..64, --clients 1..64")
+        if a.soak <= 0 or not 1 <= a.avatars <= 512 or not 1 <= a.clients <= 64:
+            raise ValueError("--soak SECONDS > 0, --avatars 1..512, --clients 1..64")
         print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png, _serve_args(a)), flush=True)
         return 0
     if a.serve:

@@ -86,6 +86,7 @@ def format_rows(rows: list[dict], backends=("onnxruntime", "torch")) -> str:
 def plot(rows: list[dict], png: str | Path, backend: str = "onnxruntime") -> None:
     """Quality against ms per segment: ASR, naturalness ratio and control velocity error."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -102,6 +103,12 @@ def plot(rows: list[dict], png: str | Path, backend: str = "onnxruntime") -> Non
             for x, y, s in pts:
                 ax.annotate(str(s), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
         ax.set_xscale("log")
+        ticks = [v for v in (5, 10, 20, 50, 100, 200, 500) if min(r[f"ms_{backend}"] for r in rows) / 1.5 <= v
+                 <= max(r[f"ms_{backend}"] for r in rows) * 1.5]
+        ax.set_xticks(ticks, [str(v) for v in ticks])
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        if key == "naturalness_ratio":
+            ax.axhline(1.5, color="k", lw=0.8, ls="--", label="goal")
         ax.set_xlabel(f"ms per 0.5-s segment, one avatar ({backend})")
         ax.set_title(label)
         ax.grid(alpha=0.3)

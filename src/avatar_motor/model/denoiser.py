@@ -141,7 +141,7 @@ class Denoiser(nn.Module):
     def condition(self, t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         """Summed time + initial-state (+ latent) embedding (B, width). A latent network given no z
         uses z = 0, the mode of p(z)."""
-        c = self.time_mlp(timestep_embedding(t, self.cfg.width)) + self.x0_embed(x0)
+        c = self.time_mlp(timestep_embedding(t, self.cfg.width).to(x0.dtype)) + self.x0_embed(x0)
         if self.cfg.latent:
             c = c + self.z_mlp(z if z is not None else x0.new_zeros(len(x0), self.cfg.latent))
         return c

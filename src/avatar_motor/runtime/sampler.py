@@ -64,8 +64,8 @@ class Sampler:
         self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" else motor.net
 
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
-        """Segments (B, N, 267) in the canonical frames whose world transforms are tf, from the
-        canonical initial states x0c (B, 267). cancelled() -> True stops between network calls
+        """Segments (B, N, 267), float32, in the canonical frames whose world transforms are tf, from
+        the canonical initial states x0c (B, 267). cancelled() -> True stops between network calls
         (raises Cancelled): the batch is no longer wanted.
 
         With a few-step model, the avatars an adaptor steers are sampled as the adaptor was
@@ -73,7 +73,7 @@ class Sampler:
         independent, so the split changes no avatar's motion."""
         if self.kind != "ddpm" and self.adaptor is not None and any(batch.adapted):
             on = torch.tensor(batch.adapted)
-            out = torch.empty(len(batch), self.motor.net.cfg.frames, STATE_DIM, dtype=torch.float64)
+            out = torch.empty(len(batch), self.motor.net.cfg.frames, STATE_DIM)
             for rows, ddpm in ((on.nonzero()[:, 0], True), ((~on).nonzero()[:, 0], False)):
                 if len(rows):
                     out[rows] = self._sample(_subset(batch, rows), x0c[rows], Transform(tf.R[rows], tf.t[rows]),
@@ -107,7 +107,7 @@ class Sampler:
         else:
             seg_n = fewstep.sample(self.kind, motor.diffusion, denoise, shape, cfg.steps, batch.gens, guide,
                                    motor.net.cfg.latent)
-        return motor.norm.decode(seg_n).double()
+        return motor.norm.decode(seg_n)
 
     def _denoiser(self, batch: SegmentBatch, tf, cond):
         """The base network, or the adaptor with per-avatar controls (scale 0 for the avatars it does

@@ -23,7 +23,7 @@ from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
 from ..runtime.sampler import Cancelled
 from . import protocol as P
 
-MAX_AVATARS = 64  # the most a world holds however fast the machine (Server measures its own cap)
+MAX_AVATARS = 512  # the most a world holds however fast the machine (Server measures its own cap)
 LOOKAHEAD = 8  # frames kept queued ahead of playback
 EVENTS_KEPT = 20000  # the event history is a ring: the newest commands, about 8 MB at most
 
