@@ -40,7 +40,7 @@ def test_respacing_keeps_alpha_bar_and_sampler_runs():
     d = Diffusion(50)
     for steps in (1, 10, 25, 50):
         s = d.respaced(steps)
-        assert len(s.timesteps) == steps
+        assert len(s.timesteps) == steps and int(s.timesteps[-1]) == 49  # every chain starts from pure noise
         assert torch.allclose(s.alphas_cumprod, d.train.alphas_cumprod[s.timesteps])
     with pytest.raises(ValueError, match="between 1 and 50"):
         d.respaced(51)

@@ -61,7 +61,9 @@ class Diffusion:
             raise ValueError(f"sampling steps must be between 1 and {self.T}, got {steps}")
         if steps == self.T:
             return self.train
-        ts = torch.linspace(0, self.T - 1, steps).round().long().unique()
+        # every chain ends at the fully noised timestep, where sampling starts from pure noise
+        # (linspace alone gives a single step timestep 0)
+        ts = torch.linspace(0, self.T - 1, steps).round().long().unique() if steps > 1 else torch.tensor([self.T - 1])
         return Schedule.from_alphas_cumprod(self.train.alphas_cumprod[ts], ts)
 
     def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
