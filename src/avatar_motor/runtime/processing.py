@@ -15,11 +15,16 @@ from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, PARENTS, forward_kinema
 from ..body.motion_state import FPS, SLICES, facing_yaw, joints_of, pack, unpack
 
 
+def _backward_velocities(x0: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+    """Velocities (B, N, 22, 3) of joint locations (B, N, 22, 3): backward differences, the first
+    taken from the initial state x0 (B, 267)."""
+    return (joints - torch.cat((joints_of(x0)[:, None], joints[:, :-1]), 1)) * FPS
+
+
 def _pack_moving(x0: torch.Tensor, root_pos, root_rot, local_rot, joints: torch.Tensor) -> torch.Tensor:
     """Pack a segment (B, N, ...) whose velocities are the backward differences of its joints,
     the first one taken from the initial state x0 (B, 267)."""
-    prev = torch.cat((joints_of(x0)[:, None], joints[:, :-1]), 1)
-    return pack(root_pos, root_rot, local_rot, joints, (joints - prev) * FPS)
+    return pack(root_pos, root_rot, local_rot, joints, _backward_velocities(x0, joints))
 
 
 def _moved(x0: torch.Tensor, seg: torch.Tensor, root_pos: torch.Tensor, joints: torch.Tensor,
@@ -28,9 +33,8 @@ def _moved(x0: torch.Tensor, seg: torch.Tensor, root_pos: torch.Tensor, joints: 
     rotations' channels kept as they are (no round trip through matrices), velocities the backward
     differences of the new locations, the first from x0."""
     B, N, _ = seg.shape
-    prev = torch.cat((joints_of(x0)[:, None], joints[:, :-1]), 1)
     parts = [root_pos, rot.matrix_to_6d(root_rot) if root_rot is not None else seg[..., SLICES["root_rot"]],
-             seg[..., SLICES["local_rot"]], joints.reshape(B, N, 66), ((joints - prev) * FPS).reshape(B, N, 66)]
+             seg[..., SLICES["local_rot"]], joints.reshape(B, N, 66), _backward_velocities(x0, joints).reshape(B, N, 66)]
     return torch.cat(parts, -1)
 
 
