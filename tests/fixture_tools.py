@@ -8,6 +8,7 @@ tests/fixtures/*.bvh.
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -329,6 +330,32 @@ def quirky_bvh(naming: str, seconds: float = 3.5, seed: int = 0) -> BVH:
     return bvh_from_rotations([n for n, _, _, _ in fx], parents, trans[0].numpy(), P_file[:, 0].numpy(), local, 1 / fps,
                               spec["order"], ends_file, positions)
 
+
+
+def deepmimic_clip(frames: int = 45, dt: float = 1 / 30, lying: bool = False, durations: list[float] | None = None) -> tuple[bytes, dict]:
+    """A DeepMimic humanoid3d clip (JSON bytes) of our own: a right kick while the root walks
+    ahead and turns, the left elbow bending; or, lying, the same on a body lying on its back.
+    Returns the bytes and the rotations that went in (root, right hip, right knee angle, left
+    elbow angle, per frame), for tests that check where the bones point."""
+    t = torch.arange(frames, dtype=torch.float64) * dt
+    s = torch.sin(math.pi * t / (frames * dt))  # 0 -> 1 -> 0 over the clip
+    yaw = 0.4 * t  # about DeepMimic's up (+y)
+    root = rot.axis_angle_to_matrix(torch.stack((0 * t, yaw, 0 * t), -1))
+    if lying:  # on its back: pitched 90 degrees about its right-pointing z axis, face up
+        root = root @ rot.axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64))
+    hip = rot.axis_angle_to_matrix(torch.stack((0.1 * s, 0 * t, 1.4 * s), -1))  # flexion about +z swings the leg forward
+    knee = 0 * t if lying else -1.2 * (1 - s)  # the shin extends into the kick (lying: straight, not into the floor)
+    elbow = 1.5 * s
+    pos = torch.stack((0.3 * t, torch.full_like(t, 0.12 if lying else 0.88), 0 * t), -1)
+    one = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(frames, 4)
+    q = rot.matrix_to_quat
+    dur = torch.full((frames,), dt, dtype=torch.float64) if durations is None else torch.tensor(durations, dtype=torch.float64)
+    dur[-1] = 0.0
+    cols = [dur[:, None], pos, q(root), one, one, q(hip), knee[:, None], one, one, torch.zeros(frames, 1, dtype=torch.float64),
+            one, torch.zeros(frames, 1, dtype=torch.float64), one, one, elbow[:, None]]
+    F = torch.cat(cols, 1)
+    doc = {"Loop": "none", "Frames": [[round(v, 6) for v in row] for row in F.tolist()]}
+    return json.dumps(doc).encode(), {"root": root, "hip": hip, "knee": knee, "elbow": elbow}
 
 def reference_mix(seconds: float = 3.5, fps: float = 30.0) -> torch.Tensor:
     """Joint positions (T, 22, 3) of procedural_mix on the average body: what a quirky fixture

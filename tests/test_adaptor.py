@@ -116,10 +116,13 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
     for name, content in (("walk_lafan1", "walk"), ("walk_cmu", "wave"), ("walk_mixamo", "walk")):
         shutil.copy(FIXTURES / f"{name}.bvh", src / f"dataset-9_{content}_normal_00{len(list(src.iterdir()))}.bvh")
     import_motion(src, name="labelled", progress=False, workers=1)
-    args = ["adapt", task, "--model", str(tmp_path / "tiny"), "--data", "labelled", "--steps", "3", "--batch", "4",
-            "--out", str(tmp_path / "ad"), "--split", "all"]
+    def sets(**kv):
+        return [a for k, v in kv.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+
+    args = ["adapt", *sets(task=task, base=str(tmp_path / "tiny"), data=["labelled"], steps=3, batch=4,
+                           out=str(tmp_path / "ad"), split="all")]
     if task == "actions":
-        args += ["--swap-initial", "1.0"]  # every window of another class's state swaps: the path runs
+        args += sets(swap_initial=1.0)  # every window of another class's state swaps: the path runs
     assert main(args) == 0
     m = load_adaptor(tmp_path / "ad" / "adaptor", load_checkpoint(tmp_path / "tiny").net)
     assert m.cfg.control == ("label" if task == "actions" else "target")
@@ -128,15 +131,15 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert json.loads((tmp_path / "ad" / "adapt_config.json").read_text())["swap_initial"] == 1.0
         # an action's handedness is kept (no mirrored windows) unless asked for
         assert json.loads((tmp_path / "ad" / "adaptor" / "adaptor.json").read_text())["mirror"] is False
-        assert main(args[:-4] + ["--classes", "dance", "--split", "all"]) == 2  # unknown class named
-        assert main(args[:-1] + ["1.5"]) == 2  # a swap fraction above 1
+        assert main(args + sets(classes=["dance"])) == 2  # unknown class named
+        assert main(args + sets(swap_initial=1.5)) == 2  # a swap fraction above 1
         # the neighbour swap runs end to end (partners of another class found among near states)
-        assert main(args + ["--swap-neighbours", "4", "--out", str(tmp_path / "nn")]) == 0
+        assert main(args + sets(swap_neighbours=4, out=str(tmp_path / "nn"))) == 0
         meta = json.loads((tmp_path / "nn" / "adaptor" / "adaptor.json").read_text())
         assert meta["swap_neighbours"] == 4 and meta["mirror"] is False
-        assert main(args + ["--swap-neighbours", "4", "--swap-match", "feet", "--out", str(tmp_path / "feet")]) == 0
+        assert main(args + sets(swap_neighbours=4, swap_match="feet", out=str(tmp_path / "feet"))) == 0
         assert json.loads((tmp_path / "feet" / "adaptor" / "adaptor.json").read_text())["swap_match"] == "feet"
-        assert main(args + ["--swap-match", "feet"]) == 2  # nothing to match without the neighbour search
+        assert main(args + sets(swap_match="feet")) == 2  # nothing to match without the neighbour search
         # swapped-in states from another cache (it holds only walks, so wave windows can get its
         # states and walk windows none), by itself and with the neighbour search over that cache
         walks = tmp_path / "walks"
@@ -144,13 +147,14 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         shutil.copy(FIXTURES / "walk_lafan1.bvh", walks / "dataset-9_walk_normal_100.bvh")
         import_motion(walks, name="walks", progress=False, workers=1)
         for k in ("0", "4"):
-            assert main(args + ["--swap-data", "walks", "--swap-neighbours", k, "--out", str(tmp_path / f"sd{k}")]) == 0
+            assert main(args + sets(swap_data=["walks"], swap_neighbours=int(k), out=str(tmp_path / f"sd{k}"))) == 0
             assert json.loads((tmp_path / f"sd{k}" / "adaptor" / "adaptor.json").read_text())["swap_data"] == ["walks"]
-        assert main(args + ["--swap-data", "no-such-cache"]) == 2
-        assert main(args[:-1] + ["0", "--swap-data", "walks"]) == 2  # nothing would be swapped in
-        assert main(args + ["--mirror", "--out", str(tmp_path / "mirrored")]) == 0
+        assert main(args + sets(swap_data=["no-such-cache"])) == 2
+        assert main(args + sets(swap_initial=0, swap_data=["walks"])) == 2  # nothing would be swapped in
+        assert main(args + sets(mirror=True, out=str(tmp_path / "mirrored"))) == 0
         assert json.loads((tmp_path / "mirrored" / "adaptor" / "adaptor.json").read_text())["mirror"] is True
-        assert main(args + ["--swap-neighbours", "-1"]) == 2
+        assert main(args + sets(swap_neighbours=-1)) == 2
+        assert main(args + sets(no_such_field=1)) == 2  # a misspelt field is named, not ignored
         # Table A3 end to end: the evaluator, the table and the confusion matrix. Its initial states
         # come from held-out clips: add one (a file name whose hash falls in the held-out split)
         from avatar_motor.data.cache import is_held_out
@@ -160,10 +164,10 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert main(["eval", "actions", "--model", str(tmp_path / "tiny"), "--adaptors", f"ours={tmp_path / 'ad' / 'adaptor'}",
                      "--data", "labelled", "--n", "2", "--seconds", "1", "--encoder-steps", "2"]) == 0
     else:
-        assert main(args + ["--ema-decay", "1.0"]) == 2  # an average that never moves is named
+        assert main(args + sets(ema_decay=1.0)) == 2  # an average that never moves is named
         assert json.loads((tmp_path / "ad" / "adaptor" / "adaptor.json").read_text())["mirror"] is True  # targets have no hand
         # the scratch baseline loads beside the base it was compared with (its fingerprint is that base's)
-        assert main(args + ["--out", str(tmp_path / "scratch"), "--kind", "finetune", "--scratch"]) == 0  # the last --out counts
+        assert main(args + sets(out=str(tmp_path / "scratch"), kind="finetune", scratch=True)) == 0  # the last --set counts
         load_adaptor(tmp_path / "scratch" / "adaptor", load_checkpoint(tmp_path / "tiny").net)
         # the saved weights are the moving average: from the zero-initialised projections it
         # moves less far than the last weights of the same run
@@ -189,7 +193,7 @@ def test_cosine_schedule_runs_on_steps_or_on_wall_time():
     timed = AdaptConfig(steps=100000, max_minutes=10)
     assert _progress(50, timed, seconds=300) == 0.5  # a time-limited run: the clock counts
     assert _progress(50, timed, seconds=900) == 1.0
-    with pytest.raises(ValueError, match="lr-schedule"):
+    with pytest.raises(ValueError, match="lr_schedule"):
         from avatar_motor.train.adapt import adapt
         adapt(AdaptConfig(lr_schedule="step"), progress=False)
 

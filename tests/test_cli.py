@@ -3,7 +3,7 @@ import pytest
 from avatar_motor.cli import build_parser, main
 
 
-@pytest.mark.parametrize("cmd", [["train"], ["data", "import"], ["data", "show"], ["data", "list"], ["generate"], ["serve"],
+@pytest.mark.parametrize("cmd", [["train"], ["adapt"], ["distill"], ["data", "import"], ["data", "show"], ["data", "list"], ["generate"], ["serve"],
                                  ["eval", "realism"], ["eval", "control"], ["eval", "impulses"], ["bench"]])
 def test_every_command_has_help(cmd, capsys):
     with pytest.raises(SystemExit) as e:
@@ -12,8 +12,13 @@ def test_every_command_has_help(cmd, capsys):
 
 
 def test_clear_errors_for_missing_things(tmp_path, capsys):
-    assert main(["train", "--steps", "1", "--out", str(tmp_path / "r")]) == 2
+    assert main(["train", "--set", "steps=1", "--set", f"out={tmp_path / 'r'}", "--set", "data=[\"no-such-cache\"]"]) == 2
     assert "data import" in capsys.readouterr().err
+    assert main(["train", "--config", str(tmp_path / "missing.json")]) == 2
+    assert "cannot read the config" in capsys.readouterr().err
+    assert main(["train", "--set", "stepz=1"]) == 2
+    assert "unknown fields ['stepz']" in capsys.readouterr().err
+    assert main(["adapt", "--set", "segment.x=1"]) == 2
     assert main(["generate", "--model", str(tmp_path / "nope"), "--out", str(tmp_path / "x.bvh")]) == 2
     assert "no such checkpoint folder" in capsys.readouterr().err
     assert main(["generate", "--out", str(tmp_path / "x.txt")]) == 2

@@ -15,13 +15,10 @@ DEFAULT_MODEL = FEW_STEP_MODEL if (FEW_STEP_MODEL / "config.json").exists() else
 
 
 def _train(a) -> int:
+    from . import config
     from .train.trainer import TrainConfig, Trainer
 
-    d = json.loads(Path(a.config).read_text()) if a.config else {}
-    for k in ("steps", "out", "batch", "seed", "threads"):
-        if getattr(a, k) is not None:
-            d[k] = getattr(a, k)
-    cfg = TrainConfig.from_dict(d)
+    cfg = config.load(TrainConfig, a.config, a.set)
     tr = Trainer(cfg)
     print(f"training {cfg.name}: {sum(p.numel() for p in tr.net.parameters()) / 1e6:.2f} M parameters, "
           f"{len(tr.ds)} windows from {tr.ds.frames_total} frames, batch {cfg.batch}, to step {cfg.steps}, out {cfg.out}", flush=True)
@@ -30,30 +27,11 @@ def _train(a) -> int:
     return 0
 
 
-def _with_sets(d: dict, sets: list[str] | None) -> dict:
-    """--set NAME=VALUE (repeatable; VALUE read as JSON, else as text; NAME may be dotted for a
-    nested field, e.g. segment.mirror=false) over a config dict."""
-    for item in sets or []:
-        name, eq, value = item.partition("=")
-        if not eq or not name:
-            raise ValueError(f"--set takes NAME=VALUE, got {item!r}")
-        try:
-            v = json.loads(value)
-        except json.JSONDecodeError:
-            v = value
-        *path, last = name.split(".")
-        node = d
-        for p in path:
-            node = node.setdefault(p, {})
-        node[last] = v
-    return d
-
-
 def _distill(a) -> int:
+    from . import config
     from .train.fewstep import FewStepConfig, FewStepTrainer
 
-    d = json.loads(Path(a.config).read_text()) if a.config else {}
-    cfg = FewStepConfig.from_dict(_with_sets(d, a.set))
+    cfg = config.load(FewStepConfig, a.config, a.set).validated()
     tr = FewStepTrainer(cfg)
     print(f"training the {cfg.method} sampler from {cfg.base}: {len(tr.ds)} windows, batch {cfg.batch}, "
           f"to step {cfg.steps}, out {cfg.out}", flush=True)
@@ -460,22 +438,10 @@ def _bench(a) -> int:
 
 
 def _adapt(a) -> int:
+    from . import config
     from .train.adapt import AdaptConfig, adapt
 
-    cfg = AdaptConfig(base=a.model, data=a.data or ["dataset-1"], out=a.out, task=a.task, kind=a.kind,
-                      label_key=a.label_key, classes=[c for c in (a.classes or "").split(",") if c],
-                      steps=a.steps, batch=a.batch or (16 if a.task == "actions" else 128), seed=a.seed, split=a.split,
-                      scratch=a.scratch, clips_per_class=a.clips_per_class, max_minutes=a.max_minutes, lr=a.lr)
-    if a.swap_initial is not None:
-        cfg.swap_initial = a.swap_initial
-    if a.ema_decay is not None:
-        cfg.ema_decay = a.ema_decay
-    cfg.lr_schedule = a.lr_schedule
-    cfg.swap_neighbours = a.swap_neighbours
-    cfg.swap_match = a.swap_match
-    cfg.swap_data = a.swap_data or []
-    cfg.mirror = a.mirror
-    path = adapt(cfg)
+    path = adapt(config.load(AdaptConfig, a.config, a.set))
     print(f"adaptor written to {path}")
     return 0
 
@@ -577,22 +543,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avatar-motor", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
 
-    t = sub.add_parser("train", help="train a base motor model (resumes from --out if a state is there)")
-    t.add_argument("--config", help="JSON training config (see configs/base.json); defaults work without one")
-    t.add_argument("--steps", type=int)
-    t.add_argument("--out")
-    t.add_argument("--batch", type=int)
-    t.add_argument("--seed", type=int)
-    t.add_argument("--threads", type=int)
-    t.set_defaults(func=_train)
-
-    ds = sub.add_parser("distill", help="train a few-step sampler (EMDM or consistency) from a base (resumes from its out)")
-    ds.add_argument("--config", help="JSON config (configs/emdm.json, configs/consistency.json); defaults work without one")
-    ds.add_argument("--set", action="append", metavar="NAME=VALUE", help="override a config field (repeatable)")
-    ds.set_defaults(func=_distill)
+    for name, helptext, example in (
+            ("train", "train a base motor model (resumes from its out folder if a state is there)", "configs/base.json"),
+            ("distill", "train a few-step sampler (EMDM or consistency) from a base (resumes from its out)",
+             "configs/emdm.json, configs/consistency.json"),
+            ("adapt", "train an adaptor on a frozen base model: action labels or 2-D targets",
+             "configs/actions.json, configs/styles.json, configs/reach.json")):
+        j = sub.add_parser(name, help=helptext)
+        j.add_argument("--config", help=f"JSON config ({example}); fields it leaves out keep their defaults")
+        j.add_argument("--set", action="append", metavar="NAME=VALUE",
+                       help="override one config field (repeatable; dotted for nested fields, e.g. segment.mirror=false)")
+        j.set_defaults(func={"train": _train, "distill": _distill, "adapt": _adapt}[name])
 
     d = sub.add_parser("data", help="import and inspect motion").add_subparsers(dest="dcmd", required=True)
-    i = d.add_parser("import", help="convert BVH (folder, file, .tar.xz or .zip) into the motion cache")
+    i = d.add_parser("import", help="convert BVH or DeepMimic clips (folder, file, .tar.xz or .zip, pybullet's wheel) into the motion cache")
     i.add_argument("path")
     i.add_argument("--name", help="dataset name (default: from the path)")
     i.add_argument("--cache-dir", help="default: $AVATAR_MOTOR_CACHE or ~/.cache/avatar-motor, /motion")
@@ -611,40 +575,6 @@ def build_parser() -> argparse.ArgumentParser:
     ls = d.add_parser("list", help="list the motion caches (and with --clips their clips)")
     ls.add_argument("--clips", action="store_true")
     ls.set_defaults(func=_data_list)
-
-    ad = sub.add_parser("adapt", help="train an adaptor on a frozen base model: action labels or 2-D targets")
-    ad.add_argument("task", choices=["actions", "reach"])
-    ad.add_argument("--model", default=str(BASE_MODEL), help="the base model")
-    ad.add_argument("--data", nargs="*", help="motion caches (default: dataset-1)")
-    ad.add_argument("--kind", choices=["controlnet", "omni", "finetune"], default="controlnet")
-    ad.add_argument("--label-key", default="content", help="which clip label is the action (Bandai: content or style)")
-    ad.add_argument("--classes", help="comma-separated labels to learn (default: all)")
-    ad.add_argument("--clips-per-class", type=int, default=0, help="few-shot: first N clips of each class (0 = all)")
-    ad.add_argument("--steps", type=int, default=2000)
-    ad.add_argument("--lr", type=float, default=1e-4, help="AdamW learning rate (PRIMAL: 1e-4)")
-    ad.add_argument("--lr-schedule", choices=("constant", "cosine"), default="constant",
-                    help="constant (PRIMAL), or cosine: the rate falls to 0 over --steps, or over --max-minutes when set")
-    ad.add_argument("--max-minutes", type=float, default=0.0, help="stop after this much wall time (0 = no limit)")
-    ad.add_argument("--batch", type=int)
-    ad.add_argument("--seed", type=int, default=0)
-    ad.add_argument("--out", default="runs/adapt")
-    ad.add_argument("--scratch", action="store_true", help="baseline: train a fresh network (with --kind finetune)")
-    ad.add_argument("--swap-neighbours", type=int, default=0, metavar="K",
-                    help="swap in the initial state of one of the K windows whose initial states are nearest to the window's own "
-                         "(0 = any window): the swapped state nearly continues into the motion")
-    ad.add_argument("--swap-match", choices=("state", "feet"), default="state",
-                    help="what --swap-neighbours compares: the whole state, or only the ankles' and feet's positions and velocities")
-    ad.add_argument("--swap-initial", type=float,
-                    help="fraction of training windows conditioned on another window's initial state (actions: of another class), "
-                         "so the control, not the state, must carry the motion (default 0.5; 0 = PRIMAL's recipe)")
-    ad.add_argument("--swap-data", nargs="*", metavar="CACHE",
-                    help="motion caches that supply the swapped-in initial states (first frames only, none of the commanded label; "
-                         "default: the adaptation data), e.g. the base model's data, so the adaptor learns to start from any state")
-    ad.add_argument("--split", choices=["train", "heldout", "all"], default="train", help="which clips (5 %% are held out)")
-    ad.add_argument("--mirror", action=argparse.BooleanOptionalAction,
-                    help="also train on left/right mirrored windows (default: for reach only; an action's handedness is part of it)")
-    ad.add_argument("--ema-decay", type=float, help="the adaptor saved is this moving average of the weights, from step 1,000 on (default 0.999; 0 = the last weights)")
-    ad.set_defaults(func=_adapt)
 
     sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")
     sv.add_argument("--model", default=str(DEFAULT_MODEL))

@@ -1,4 +1,4 @@
-"""The motion cache: BVH clips converted once onto the canonical body, one array file per dataset.
+"""The motion cache: BVH and DeepMimic clips converted once onto the canonical body, one array file per dataset.
 
 A cache file `<name>.npz` holds, concatenated over clips at 30 fps:
     root_pos (N, 3) float32, quats (N, 22, 4) float32, clip_start (C,), clip_len (C,)
@@ -28,12 +28,14 @@ import numpy as np
 from ..io.atomic import write_file
 from ..io import bvh as B
 from ..io.bvh import BVHError, read_bvh
+from ..io.deepmimic import AXES as DEEPMIMIC_AXES, looks_like_deepmimic, read_deepmimic
 from .retarget import resample, retarget
 
 # 2: twist-canonical retargeting; 3: handedness judged per frame (no mirrored sprints); 4: zero-length
 # and in-between source bones, leaf bones from ranked children, ignored joints recorded (Bandai
 # clips convert as in 3)
 CACHE_VERSION = 4
+_DEEPMIMIC = "humanoid3d_"
 _BANDAI = re.compile(r"dataset-(?P<part>\d+)_(?P<content>[a-z\-]+)_(?P<style>[a-z\-]+)_(?P<id>\d+)$")
 
 
@@ -46,10 +48,13 @@ def default_cache_dir() -> Path:
 
 
 def labels_from_name(stem: str) -> dict:
-    """Labels from a file name; the Bandai pattern `dataset-N_{content}_{style}_{id}` is understood."""
+    """Labels from a file name; the Bandai pattern `dataset-N_{content}_{style}_{id}` and
+    DeepMimic's `humanoid3d_{content}` are understood."""
     m = _BANDAI.match(stem)
     if m:
         return {"content": m["content"], "style": m["style"]}
+    if stem.startswith(_DEEPMIMIC):
+        return {"content": stem[len(_DEEPMIMIC):]}
     return {}
 
 
@@ -118,26 +123,36 @@ def _bounded(key: str, size: int, read) -> bytes:
     return data
 
 
+# motion files: BVH, and DeepMimic's JSON clips (.txt as distributed, or .json); a .txt or .json
+# that is not a JSON object (a read-me) is passed over without a word (`_is_motion`)
+MOTION_SUFFIXES = (".bvh", ".txt", ".json")
+
+
+def _is_motion(key: str, data: bytes) -> bool:
+    return key.lower().endswith(".bvh") or looks_like_deepmimic(data)
+
+
 def _iter_sources(src: Path):
-    """Yield (key, stamp, load) for each BVH in a folder, a file, or a .tar(.xz/.gz)/.zip archive.
-    Archive members are read straight from the archive, one at a time, when load() is called;
-    load raises BVHError for a member above the size limit."""
+    """Yield (key, stamp, load) for each motion file (MOTION_SUFFIXES) in a folder, a file, or a
+    .tar(.xz/.gz)/.zip archive (a .whl is a zip: pybullet's carries DeepMimic's clips). Archive
+    members are read straight from the archive, one at a time, when load() is called; load raises
+    BVHError for a member above the size limit."""
     name = src.name.lower()
     if src.is_dir():
         for p in sorted(src.rglob("*")):
-            if p.suffix.lower() == ".bvh" and p.is_file():
+            if p.suffix.lower() in MOTION_SUFFIXES and p.is_file():
                 st = p.stat()
                 yield str(p.relative_to(src)), f"{st.st_size}:{int(st.st_mtime)}", (lambda p=p: read_file_bounded(p))
     elif name.endswith((".tar", ".tar.xz", ".txz", ".tar.gz", ".tgz", ".tar.bz2")):
         with tarfile.open(src) as tf:
             for mem in tf:
-                if mem.isfile() and mem.name.lower().endswith(".bvh"):
+                if mem.isfile() and mem.name.lower().endswith(MOTION_SUFFIXES):
                     yield mem.name, f"{mem.size}:{int(mem.mtime)}", (
                         lambda mem=mem: _bounded(mem.name, mem.size, tf.extractfile(mem).read))
-    elif name.endswith(".zip"):
+    elif name.endswith((".zip", ".whl")):
         with zipfile.ZipFile(src) as zf:
             for info in zf.infolist():
-                if info.filename.lower().endswith(".bvh"):
+                if info.filename.lower().endswith(MOTION_SUFFIXES):
                     def load(info=info):
                         with zf.open(info) as f:
                             return _bounded(info.filename, info.file_size, f.read)
@@ -146,7 +161,8 @@ def _iter_sources(src: Path):
         st = src.stat()
         yield src.name, f"{st.st_size}:{int(st.st_mtime)}", (lambda: read_file_bounded(src))
     else:
-        raise FileNotFoundError(f"{src}: no such file, folder or archive. Pass a folder of BVH files, a .bvh, or a .tar.xz/.zip of them")
+        raise FileNotFoundError(f"{src}: no such file, folder or archive. Pass a folder of BVH or DeepMimic files, one such "
+                                "file, a .tar.xz/.zip of them, or pybullet's wheel")
 
 
 def read_file_bounded(path: Path) -> bytes:
@@ -155,10 +171,14 @@ def read_file_bounded(path: Path) -> bytes:
 
 
 def convert_clip(key: str, data: bytes, mapping: dict | None = None, unit: str | None = None):
-    """BVH bytes -> (clip arrays, metadata) or (None, reason)."""
+    """BVH or DeepMimic bytes -> (clip arrays, metadata) or (None, reason)."""
     try:
-        b = read_bvh(data, name=key)
-        r = resample(retarget(b, mapping, unit), 30.0)
+        if looks_like_deepmimic(data):  # axes, unit and ground are the format's own
+            b = read_deepmimic(data, name=key)
+            r = resample(retarget(b, unit="m", axes=DEEPMIMIC_AXES, ground="source"), 30.0)
+        else:
+            b = read_bvh(data, name=key)
+            r = resample(retarget(b, mapping, unit), 30.0)
     except (BVHError, ValueError) as e:
         return None, str(e)
     if r.root_pos.shape[0] < 2:
@@ -223,6 +243,8 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
                 name = name[: -len(ext)]
         if name == "data" and src.is_dir():
             name = src.parent.name
+        if src.name.lower().startswith("pybullet-") and src.name.lower().endswith(".whl"):
+            name = "deepmimic"
     cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
     path = cache_dir / f"{name}.npz"
     old = None
@@ -252,6 +274,8 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
                 data = load()
             except BVHError as e:
                 skipped.append({"key": key, "reason": str(e)})
+                continue
+            if not _is_motion(key, data):
                 continue
             yield key, stamp, data
 
@@ -290,7 +314,7 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
     items.sort(key=lambda it: it[1]["key"])
     if not items:
         raise ValueError(f"{src}: no clip could be imported ({len(skipped)} skipped"
-                         + (f", first reason: {skipped[0]['reason']}" if skipped else ", no .bvh files found") + ")")
+                         + (f", first reason: {skipped[0]['reason']}" if skipped else ", no motion files (.bvh, DeepMimic .txt) found") + ")")
     lens = np.array([it[0][0].shape[0] for it in items], np.int64)
     meta = {"version": CACHE_VERSION, "name": name, "source": source, "fps": 30.0,
             "clips": [it[1] for it in items], "skipped": skipped}

@@ -8,7 +8,7 @@ left/right, run the one FK, and canonicalize on the initial state. All batched i
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +29,9 @@ class SegmentConfig:
     shape_augment: float = 1.0  # std of random body-shape vectors (0 = average body only)
     mirror: bool = True
     split: str = "train"  # "train", "heldout" or "all"
+    # share of the windows drawn from a cache, by cache name (e.g. {"deepmimic": 0.1}); the caches
+    # not named share the rest in proportion to their windows. Default: every window alike.
+    weights: dict[str, float] = field(default_factory=dict)
 
 
 class SegmentDataset:
@@ -38,7 +41,8 @@ class SegmentDataset:
         need = self.cfg.frames + 2
         roots, quats, starts, lens, names, labels = [], [], [], [], [], []
         offset = 0
-        for cache in caches:
+        clip_cache = []
+        for c, cache in enumerate(caches):
             for i, clip in enumerate(cache.clips):
                 held = is_held_out(clip["key"])
                 if (self.cfg.split == "train" and held) or (self.cfg.split == "heldout" and not held):
@@ -54,6 +58,7 @@ class SegmentDataset:
                 lens.append(rp.shape[0])
                 names.append(clip["key"])
                 labels.append(clip.get("labels", {}))
+                clip_cache.append(c)
                 offset += rp.shape[0]
         if not roots:
             raise ValueError(f"no clip of at least {need} frames in split {self.cfg.split!r}; import more motion")
@@ -66,6 +71,8 @@ class SegmentDataset:
         # every valid window start, weighted uniformly over frames, and the clip it belongs to
         self.window_starts = torch.cat([torch.arange(s, s + n - need + 1) for s, n in zip(starts, lens)])
         self.window_clip = torch.cat([torch.full((n - need + 1,), k) for k, n in enumerate(lens)])
+        self.window_cdf = _window_cdf([c.meta.get("name") or Path(str(c.path)).stem for c in caches],
+                                      torch.tensor(clip_cache)[self.window_clip], self.cfg.weights)
 
     def __len__(self) -> int:
         return len(self.window_starts)
@@ -80,7 +87,11 @@ class SegmentDataset:
 
     def sample_indexed(self, batch: int, generator: torch.Generator | None = None):
         """Like sample, plus the index of each window's clip (for its labels)."""
-        idx = torch.randint(len(self.window_starts), (batch,), generator=generator)
+        if self.window_cdf is None:
+            idx = torch.randint(len(self.window_starts), (batch,), generator=generator)
+        else:
+            u = torch.rand(batch, generator=generator, dtype=torch.float64)
+            idx = torch.searchsorted(self.window_cdf, u, right=True).clamp(max=len(self.window_starts) - 1)
         x, shapes = self.windows(self.window_starts[idx], generator)
         return x, shapes, self.window_clip[idx]
 
@@ -109,6 +120,33 @@ class SegmentDataset:
         x = pack(root[:, 1:], R[:, 1:, 0], R[:, 1:, 1:], J[:, 1:], vel)
         xc, _ = canonicalize(x)
         return xc.float(), shapes.float()
+
+
+def _window_cdf(names: list[str], window_cache: torch.Tensor, weights: dict[str, float]) -> torch.Tensor | None:
+    """Cumulative draw probability of each window (None: uniform) for `SegmentConfig.weights`:
+    a named cache's windows share its weight, the others the rest, each cache's windows alike."""
+    if not weights:
+        return None
+    unknown = sorted(set(weights) - set(names))
+    if unknown:
+        raise ValueError(f"segment.weights names {unknown}, which the training data lacks; its caches are {names}")
+    if any(not 0 < w <= 1 for w in weights.values()):
+        raise ValueError(f"segment.weights must be shares in (0, 1], got {weights}")
+    counts = torch.bincount(window_cache, minlength=len(names)).double()
+    named = torch.tensor([n in weights for n in names])
+    empty = [n for n, k in zip(names, counts) if n in weights and k == 0]
+    if empty:
+        raise ValueError(f"segment.weights names {empty}, which has no window of this split; drop it from the weights")
+    rest = 1.0 - sum(weights.values())
+    if rest < -1e-9 or (rest > 1e-9 and not (~named & (counts > 0)).any()):
+        raise ValueError(f"segment.weights {weights} must sum to 1 over the caches {names} when all are named, "
+                         "and below 1 when some are not")
+    share = torch.tensor([weights.get(n, 0.0) for n in names], dtype=torch.float64)
+    free = ~named & (counts > 0)
+    share[free] = max(rest, 0.0) * counts[free] / counts[free].sum()
+    p = share[window_cache] / counts[window_cache]
+    cdf = torch.cumsum(p, 0)
+    return cdf / cdf[-1]
 
 
 @dataclass

@@ -31,12 +31,12 @@ _SIDE = {"left": ("Left", "L"), "right": ("Right", "R")}
 
 
 def _lr(fmt: dict[str, str]) -> dict[str, str]:
-    """Expand '{S}'/'{s}' placeholders for the left and right side."""
+    """Expand '{S}'/'{s}'/'{side}' placeholders (Left/L/left) for the left and right side."""
     out = {}
     for canon, src in fmt.items():
         if "{" in canon:
             for side, (long, short) in _SIDE.items():
-                out[canon.format(side=side)] = src.format(S=long, s=short)
+                out[canon.format(side=side)] = src.format(S=long, s=short, side=side)
         else:
             out[canon] = src
     return out
@@ -70,6 +70,14 @@ NAMINGS: dict[str, dict[str, str | tuple[str, str]]] = {
         "{side}_collar": "clavicle_{s}", "{side}_shoulder": "upperarm_{s}", "{side}_elbow": "lowerarm_{s}", "{side}_wrist": "hand_{s}",
     })),
     "ue4": {**_UE, "spine2": "spine_02", "spine3": "spine_03"},
+    # DeepMimic's humanoid3d as io/deepmimic.py reads it: one chest joint, so the spine's bend is
+    # spread over spine1..3 by slerping pelvis (the root's rotation), chest and neck
+    "deepmimic": _lr({
+        "pelvis": "pelvis", "spine1": ("pelvis", "chest"), "spine2": "chest", "spine3": ("chest", "neck"), "neck": "neck",
+        "head": "head", "{side}_hip": "{side}_hip", "{side}_knee": "{side}_knee", "{side}_ankle": "{side}_ankle",
+        "{side}_foot": "{side}_toe", "{side}_collar": "{side}_collar", "{side}_shoulder": "{side}_shoulder",
+        "{side}_elbow": "{side}_elbow", "{side}_wrist": "{side}_wrist",
+    }),
     "smpl": {n: n for n in JOINT_NAMES},
     "smpl_short": _lr({
         "pelvis": "Pelvis", "spine1": "Spine1", "spine2": "Spine2", "spine3": "Spine3", "neck": "Neck", "head": "Head",
@@ -318,20 +326,25 @@ def _zero_mean_twist(G: torch.Tensor, C: torch.Tensor, parent: torch.Tensor, bon
 
 
 def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, ground: str = "auto",
-             body: str = "average") -> Retargeted:
+             body: str = "average", axes: np.ndarray | None = None) -> Retargeted:
     """ground="auto" lifts the clip so its feet rest on the ground (skeletons differ in where their
-    toe joint sits); "keep" keeps the file's own heights (files this project wrote). body="average"
+    toe joint sits); "keep" keeps the file's own heights (files this project wrote); "source" trusts
+    the file's ground plane (height 0), for clips that lie, crawl or roll, whose feet are not the
+    lowest part: the body is lifted so that, in the median frame, its lowest joint is as high above
+    the ground as the source's lowest joint. axes: rows left, up, forward in file axes, for
+    formats that define them (DeepMimic); default: judged from the body (`detect_axes`), which
+    needs the clip to be mostly upright. body="average"
     puts the motion on the average body (what the motion cache holds: training draws shapes of its
     own); "source" on the body shape estimated from the file's skeleton (`estimate_shape`), so an
     avatar started from the file keeps its character's proportions."""
-    if ground not in ("auto", "keep"):
-        raise ValueError(f"ground must be 'auto' or 'keep', got {ground!r}")
+    if ground not in ("auto", "keep", "source"):
+        raise ValueError(f"ground must be 'auto', 'keep' or 'source', got {ground!r}")
     if body not in ("average", "source"):
         raise ValueError(f"body must be 'average' or 'source', got {body!r}")
     m = detect_mapping(b, mapping)
     unit_name, scale = (unit, UNITS[unit]) if unit else detect_units(b, m)
     P_src, G_src = b.global_transforms()
-    A = detect_axes(P_src, m)
+    A = detect_axes(P_src, m) if axes is None else np.asarray(axes, np.float64)
     P_w = torch.from_numpy(np.einsum("ab,fjb->fja", A, P_src) * scale)
     G_w = torch.from_numpy(np.einsum("ab,fjbc,dc->fjad", A, G_src, A))
     P_rest = torch.from_numpy(_rest_positions(b) @ A.T * scale)
@@ -416,8 +429,12 @@ def retarget(b: BVH, mapping: dict | None = None, unit: str | None = None, groun
     root = P_w[:, m.joints["pelvis"][0]] * ratio
     # feet on the ground: the 10th percentile of the per-frame lowest foot joint sits at FOOT_CLEARANCE
     J, _ = forward_kinematics(root, glob[:, 0], local, can_off)
-    feet = J[:, ANKLES_AND_FEET, 1].min(1).values
-    lift = FOOT_CLEARANCE - float(torch.quantile(feet, 0.1)) if ground == "auto" else 0.0
+    if ground == "auto":
+        lift = FOOT_CLEARANCE - float(torch.quantile(J[:, ANKLES_AND_FEET, 1].min(1).values, 0.1))
+    elif ground == "source":
+        lift = float((P_w[..., 1].min(1).values * ratio - J[..., 1].min(1).values).median())
+    else:
+        lift = 0.0
     root[:, 1] += lift
     quats = torch.cat((rot.matrix_to_quat(glob[:, :1]), rot.matrix_to_quat(local)), 1)
     used = {i for v in m.joints.values() for i in v}

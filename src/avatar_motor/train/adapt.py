@@ -101,7 +101,7 @@ def _progress(step: int, cfg: AdaptConfig, seconds: float) -> float:
 
 
 def _match_features(match: str) -> torch.Tensor:
-    """Indices into a motion state of what --swap-match compares: all joints' positions and
+    """Indices into a motion state of what swap_match compares: all joints' positions and
     velocities, or only those of the ankles and feet."""
     joints = range(NUM_JOINTS) if match == "state" else ANKLES_AND_FEET
     return torch.tensor([s.start + 3 * j + k for s in (SLICES["joints"], SLICES["velocities"]) for j in joints for k in range(3)])
@@ -160,27 +160,27 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     if cfg.task not in ("actions", "reach"):
         raise ValueError(f"task must be 'actions' or 'reach', got {cfg.task!r}")
     if not 0.0 <= cfg.ema_decay < 1.0:
-        raise ValueError(f"--ema-decay must be in [0, 1), not {cfg.ema_decay}")
+        raise ValueError(f"ema_decay must be in [0, 1), not {cfg.ema_decay}")
     if not 0.0 <= cfg.swap_initial <= 1.0:
-        raise ValueError(f"--swap-initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
+        raise ValueError(f"swap_initial is a fraction of the training windows: give a value in [0, 1], not {cfg.swap_initial}")
     if cfg.swap_neighbours < 0:
-        raise ValueError(f"--swap-neighbours is a count of windows (0 = any window), not {cfg.swap_neighbours}")
+        raise ValueError(f"swap_neighbours is a count of windows (0 = any window), not {cfg.swap_neighbours}")
     if cfg.swap_match not in ("state", "feet"):
-        raise ValueError(f"--swap-match must be 'state' or 'feet', not {cfg.swap_match!r}")
+        raise ValueError(f"swap_match must be 'state' or 'feet', not {cfg.swap_match!r}")
     if cfg.swap_match != "state" and cfg.swap_neighbours == 0:
-        raise ValueError("--swap-match chooses what --swap-neighbours compares: give --swap-neighbours K too")
+        raise ValueError("swap_match chooses what swap_neighbours compares: give swap_neighbours K too")
     if cfg.swap_data:
         if cfg.swap_initial == 0:
-            raise ValueError("--swap-data supplies the swapped-in initial states: use it with --swap-initial above 0")
+            raise ValueError("swap_data supplies the swapped-in initial states: use it with swap_initial above 0")
         resolve_caches(cfg.swap_data)  # a missing cache is named before anything loads
     if cfg.lr_schedule not in ("constant", "cosine"):
-        raise ValueError(f"--lr-schedule must be 'constant' or 'cosine', not {cfg.lr_schedule!r}")
+        raise ValueError(f"lr_schedule must be 'constant' or 'cosine', not {cfg.lr_schedule!r}")
     torch.manual_seed(cfg.seed)
     motor = load_checkpoint(cfg.base)
     shipped_net = motor.net  # the base the adaptor is used with (and recorded against)
     if cfg.scratch:
         if cfg.kind != "finetune":
-            raise ValueError("--scratch trains the whole network: use it with --kind finetune")
+            raise ValueError("scratch trains the whole network: use it with kind finetune")
         from ..model.denoiser import Denoiser
         motor.net = Denoiser(motor.net.cfg)  # same architecture and normalisation, fresh weights
     caches = [MotionCache.load(p) for p in resolve_caches(cfg.data)]

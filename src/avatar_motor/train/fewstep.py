@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 
 from ..data.cache import MotionCache
+from .. import config
 from ..data.dataset import SegmentConfig, SegmentDataset
 from ..io.atomic import replace_folder
 from ..model.adaptor import base_fingerprint
@@ -81,14 +82,10 @@ class FewStepConfig:
 
     @staticmethod
     def from_dict(d: dict) -> "FewStepConfig":
-        d = dict(d)
-        known = set(FewStepConfig.__dataclass_fields__)
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown few-step config fields {sorted(unknown)}; known: {sorted(known)}")
-        if "segment" in d:
-            d["segment"] = SegmentConfig(**d["segment"])
-        cfg = FewStepConfig(**d)
+        return config.from_dict(FewStepConfig, d, "few-step config").validated()
+
+    def validated(self) -> "FewStepConfig":
+        cfg = self
         if cfg.method not in METHODS:
             raise ValueError(f"few-step config 'method' must be one of {METHODS}, got {cfg.method!r}")
         if not cfg.chains or any(c not in FEW_STEPS for c in cfg.chains) or cfg.default_steps not in cfg.chains:

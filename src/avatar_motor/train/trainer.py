@@ -20,9 +20,10 @@ import torch.distributed as dist
 from safetensors.torch import load_file, save_file
 
 from ..data.cache import MotionCache, default_cache_dir
+from .. import config
 from ..data.dataset import SegmentConfig, SegmentDataset, load_or_compute_stats
 from ..io.atomic import recover_folder, replace_folder, write_file
-from ..model.checkpoint import checkpoint_complete, save_checkpoint
+from ..model.checkpoint import checkpoint_complete, load_checkpoint, save_checkpoint
 from ..model.denoiser import Denoiser, DenoiserConfig
 from ..model.diffusion import Diffusion
 from .losses import motion_loss
@@ -51,6 +52,9 @@ class TrainConfig:
     threads: int = 0  # 0 = torch default
     diffusion_steps: int = 50
     init: str = ""  # warm start: a checkpoint folder whose weights (same model config) start the run
+    # with init: keep its normalisation (continuing a model on added data) instead of computing
+    # the data's (following re-imported data)
+    init_stats: bool = False
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     name: str = "avatar-motor-base"
@@ -58,16 +62,7 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(d: dict) -> "TrainConfig":
-        d = dict(d)
-        known = {f for f in TrainConfig.__dataclass_fields__}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown training config fields {sorted(unknown)}; known: {sorted(known)}")
-        if "model" in d:
-            d["model"] = DenoiserConfig(**d["model"])
-        if "segment" in d:
-            d["segment"] = SegmentConfig(**d["segment"])
-        return TrainConfig(**d)
+        return config.from_dict(TrainConfig, d, "training config")
 
 
 def resolve_caches(names: list[str]) -> list[Path]:
@@ -132,7 +127,9 @@ class Trainer:
         self.cache_paths = resolve_caches(cfg.data)
         caches = [MotionCache.load(p) for p in self.cache_paths]
         self.ds = SegmentDataset(caches, cfg.segment)
-        self.norm = load_or_compute_stats(self.ds, self.cache_paths)
+        if cfg.init_stats and not cfg.init:
+            raise ValueError("init_stats keeps the init checkpoint's normalisation; set init to that checkpoint")
+        self.norm = load_checkpoint(cfg.init).norm if cfg.init_stats else load_or_compute_stats(self.ds, self.cache_paths)
         torch.manual_seed(cfg.seed)
         self.net = Denoiser(cfg.model)
         if cfg.init and not (self.state_dir / "state.json").exists():  # a resumed run has its own weights
@@ -150,8 +147,8 @@ class Trainer:
     # ------------------------------------------------------------ state
     def _warm_start(self, folder: str) -> None:
         """Start from a trained checkpoint's weights (not its optimizer or step count): the data's
-        normalisation is recomputed, so a model can follow re-imported data without starting over."""
-        from ..model.checkpoint import load_checkpoint
+        normalisation is recomputed (unless init_stats), so a model can follow re-imported data
+        without starting over."""
         motor = load_checkpoint(folder)
         if motor.net.cfg != self.cfg.model:
             raise ValueError(f"init checkpoint {folder} has model {motor.net.cfg}, the config asks for {self.cfg.model}; "
