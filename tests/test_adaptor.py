@@ -203,7 +203,7 @@ def test_a_reaching_avatar_faces_its_target_until_it_is_near(tmp_path):
     from .conftest_models import tiny_motor
     motor = tiny_motor(tmp_path)
     ad = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
-    crowd = Crowd(motor, RuntimeConfig(face_target_beyond=0.5), adaptor=ad)
+    crowd = Crowd(motor, RuntimeConfig(face_target_beyond=0.5), adaptors=ad)
     i = crowd.spawn(position=(1.0, 2.0))
     a = crowd.avatars[i]
     assert crowd._facing_goal(a) is None  # no target, no facing goal
@@ -227,7 +227,7 @@ def test_runtime_labels_and_targets(tmp_path):
     motor = tiny_motor(tmp_path)
     ad = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["walk", "wave"])).eval()
     torch.nn.init.normal_(ad.zero[0].weight, std=0.5)
-    crowd = Crowd(motor, seed=1, adaptor=ad)
+    crowd = Crowd(motor, seed=1, adaptors=ad)
     plain = Crowd(motor, seed=1)
     i, j = crowd.spawn(), plain.spawn()
     assert torch.equal(crowd.step_segment()[i], plain.step_segment()[j])  # no label: the base model exactly
@@ -239,7 +239,7 @@ def test_runtime_labels_and_targets(tmp_path):
         crowd.set_target(i, (1.0, 2.0))
     with pytest.raises(ValueError, match="no action adaptor"):
         plain.set_label(j, "walk")
-    reach = Crowd(motor, adaptor=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
+    reach = Crowd(motor, adaptors=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
     k = reach.spawn()
     reach.set_target(k, (2.0, 1.0))
     assert reach.step_segment()[k].shape == (15, 267)
@@ -248,13 +248,70 @@ def test_runtime_labels_and_targets(tmp_path):
     with pytest.raises(ValueError, match=r"adaptor scale must be in \[0, 10\]"):
         reach.set_target(k, (2.0, 1.0), scale=-1.0)
     # a target at scale 0 is the base model exactly (classifier-free guidance weight 0)
-    torch.nn.init.normal_(reach.adaptor.zero[0].weight, std=0.5)
+    torch.nn.init.normal_(reach.adaptors[0].zero[0].weight, std=0.5)
     base = Crowd(motor)
     b = base.spawn()
-    zero = Crowd(motor, adaptor=reach.adaptor)
+    zero = Crowd(motor, adaptors=reach.adaptors)
     z = zero.spawn()
     zero.set_target(z, (2.0, 1.0), scale=0.0)
     assert torch.equal(zero.step_segment()[z], base.step_segment()[b])
+
+
+def test_several_adaptors_steer_their_own_avatars(tmp_path):
+    """Actions, styles and reaching loaded together: a label picks the adaptor that knows it, a
+    target the reaching one, the latest command replaces the other; in one batch each avatar gets
+    what it would get alone with its adaptor, and the unsteered one the base model."""
+    from avatar_motor.runtime.crowd import Crowd
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    ads = [AdaptedDenoiser(motor.net, AdaptorConfig(labels=["bow", "wave"])).eval(),
+           AdaptedDenoiser(motor.net, AdaptorConfig(labels=["tired", "proud"])).eval(),
+           AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()]
+    for ad in ads:
+        torch.nn.init.normal_(ad.zero[0].weight, std=0.5)
+    crowd = Crowd(motor, seed=3, adaptors=ads)
+    ids = [crowd.spawn(position=(float(k), 0.0)) for k in range(4)]
+    crowd.set_label(ids[0], "wave")
+    crowd.set_label(ids[1], "proud")
+    crowd.set_target(ids[2], (2.0, 1.0))
+    a = crowd.avatars
+    assert (a[ids[0]].adaptor, a[ids[0]].label, a[ids[1]].adaptor, a[ids[1]].label, a[ids[2]].adaptor) == (0, 1, 1, 1, 2)
+    together = crowd.step_segment()
+    for k, (ad, setup) in enumerate(((ads[0], lambda c, i: c.set_label(i, "wave")), (ads[1], lambda c, i: c.set_label(i, "proud")),
+                                     (ads[2], lambda c, i: c.set_target(i, (2.0, 1.0))), (None, lambda c, i: None))):
+        alone = Crowd(motor, seed=3, adaptors=ad)
+        for m in range(k):  # same ids, so the same noise streams
+            alone.spawn(position=(float(m), 0.0))
+        i = alone.spawn(position=(float(k), 0.0))
+        setup(alone, i)
+        got = alone.step_segment()[i]
+        assert torch.allclose(got, together[ids[k]], atol=1e-4, rtol=1e-4), (k, float((got - together[ids[k]]).abs().max()))
+    crowd.set_target(ids[0], (1.0, 1.0))  # a target replaces the label
+    assert (a[ids[0]].adaptor, a[ids[0]].label) == (2, None)
+    crowd.set_label(ids[2], "bow")  # and a label the target
+    assert (a[ids[2]].adaptor, a[ids[2]].target) == (0, None)
+    crowd.set_target(ids[2], None)  # releasing what is not set leaves the label alone
+    assert a[ids[2]].adaptor == 0
+    crowd.set_label(ids[2], None)
+    assert a[ids[2]].adaptor is None and not a[ids[2]].adapted
+    with pytest.raises(ValueError, match=r"unknown label 'dance'; the loaded adaptors know \['bow', 'proud', 'tired', 'wave'\]"):
+        crowd.set_label(ids[3], "dance")
+
+
+def test_shipped_adaptors_are_found_for_their_base(tmp_path):
+    from avatar_motor.model.adaptor import shipped_adaptors
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    models = tmp_path / "models"
+    save_adaptor(models / "tiny-actions", AdaptedDenoiser(motor.net, AdaptorConfig(labels=["a"])), "tiny")
+    other = load_checkpoint(tmp_path / "tiny").net
+    torch.nn.init.normal_(other.out.weight if hasattr(other, "out") else next(other.parameters()), std=0.1)
+    save_adaptor(models / "other-actions", AdaptedDenoiser(other, AdaptorConfig(labels=["a"])), "tiny")
+    (models / "broken").mkdir()
+    (models / "broken" / "adaptor.json").write_text("{not json")
+    assert shipped_adaptors(models, motor) == [models / "tiny-actions"]
+    assert load_adaptor(models / "tiny-actions", motor.net).name == "tiny-actions"
 
 
 def test_adaptation_evals_run_on_tiny_models(tmp_path, caplog):
@@ -387,7 +444,7 @@ def test_a_reaching_avatar_near_its_target_keeps_the_yaw_lock(tmp_path, monkeypa
     from .conftest_models import tiny_motor
     seen = _yaw_locks_seen(monkeypatch)
     motor = tiny_motor(tmp_path)
-    crowd = crowd_module.Crowd(motor, adaptor=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
+    crowd = crowd_module.Crowd(motor, adaptors=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
     near, idle = crowd.spawn(position=(0.0, 0.0)), crowd.spawn(position=(3.0, 0.0))
     crowd.set_target(near, (0.1, 0.1))
     crowd.step_segment()
@@ -402,7 +459,7 @@ def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch)
     seen = _yaw_locks_seen(monkeypatch)
     motor = tiny_motor(tmp_path)
     adaptor = AdaptedDenoiser(motor.net, AdaptorConfig(control="label", labels=["bow", "wave"])).eval()
-    crowd = crowd_module.Crowd(motor, adaptor=adaptor)
+    crowd = crowd_module.Crowd(motor, adaptors=adaptor)
     labelled, idle = crowd.spawn(position=(0.0, 0.0)), crowd.spawn(position=(3.0, 0.0))
     crowd.set_label(labelled, "bow")
     crowd.step_segment()

@@ -194,7 +194,7 @@ def test_target_command_drives_a_served_reaching_adaptor_at_its_scale(tmp_path):
     from avatar_motor.serve.protocol import ProtocolError, validate_command
     from .conftest_models import tiny_motor
     motor = tiny_motor(tmp_path)
-    world = World(motor, adaptor=AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval())
+    world = World(motor, adaptors=[AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()])
     i = world.apply({"type": "spawn"})["avatar"]
     world.apply(validate_command({"type": "target", "avatar": i, "position": [2.0, 1.0], "scale": 0.7}))
     a = world.crowd.avatars[i]

@@ -80,14 +80,22 @@ def test_studio_in_chromium(tmp_path, artifacts):
 
 
 @needs_chromium
-def test_studio_offers_the_labels_of_an_action_adaptor(tmp_path):
+def test_studio_offers_the_labels_of_its_adaptors(tmp_path):
     from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig
     motor = shipped_or_tiny(tmp_path)
-    adaptor = AdaptedDenoiser(motor.net, AdaptorConfig(labels=["bow", "wave"])).eval()  # untrained: the mechanics
-    world = World(motor, RuntimeConfig(), seed=0, adaptor=adaptor)
+    # untrained: the mechanics (the shipped adaptors' own test is test_shipped_family)
+    adaptors = [AdaptedDenoiser(motor.net, AdaptorConfig(labels=["bow", "wave"])).eval(),
+                AdaptedDenoiser(motor.net, AdaptorConfig(labels=["tired"])).eval(),
+                AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()]
+    for ad, name in zip(adaptors, ("actions", "styles", "reach")):
+        ad.name = name
+    world = World(motor, RuntimeConfig(), seed=0, adaptors=adaptors)
     with studio_page(world, "window.studio && window.studio.frame > 5") as page:
         buttons = page.eval_on_selector_all("#labels button", "bs => bs.map(b => b.textContent)")
-        assert buttons == ["bow", "wave", "none"]
+        assert buttons == ["bow", "wave", "tired", "none"]
+        groups = page.eval_on_selector_all("#labels .group", "gs => gs.map(g => g.dataset.adaptor)")
+        assert groups == ["actions", "styles"]
+        assert "reaching adaptor (reach)" in page.text_content("#magnet-mode")
         page.fill("#scale", "2")
         page.click("#labels button[data-label='wave']")
         deadline = time.time() + 5

@@ -217,15 +217,21 @@ def load_init(spec: str):
     return states[frame], shape
 
 
-def _load_adaptor(a, motor):
-    if not getattr(a, "adaptor", None):
-        return None
-    from .model.adaptor import load_adaptor
+def _load_adaptors(a, motor) -> list:
+    """The --adaptor folders (repeatable), loaded on the model's base; none given: the adaptors
+    shipped in models/ for that base (`shipped_adaptors`), so the studio has them out of the box."""
+    from .model.adaptor import load_adaptor, shipped_adaptors
     from .model.checkpoint import load_base
     base = load_base(motor)  # a few-step model runs an adaptor's avatars on its base
-    model = load_adaptor(a.adaptor, base.net, base.name)
-    model.guidance = a.guidance
-    return model
+    folders = a.adaptor if a.adaptor is not None else shipped_adaptors(MODELS, base)
+    out = []
+    for folder in folders:
+        if folder in ("", "none"):
+            continue
+        model = load_adaptor(folder, base.net, base.name)
+        model.guidance = a.guidance
+        out.append(model)
+    return out
 
 
 def _parse_xz(text: str):
@@ -275,7 +281,7 @@ def _generate(a) -> int:
     targets = _timed_args(a.target, "--target", _parse_xz)
     motor = load_checkpoint(a.model)
     init, shape = load_init(a.init) if a.init else (None, None)
-    crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptor(a, motor))
+    crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptors(a, motor))
     i = crowd.spawn(init, shape)
     frames = [crowd.state(i)]
     n = int(round(a.seconds * 30))
@@ -305,7 +311,7 @@ def _serve(a) -> int:
     motor = load_checkpoint(a.model)
     if a.threads:
         torch.set_num_threads(a.threads)
-    world = World(motor, _runtime_config(a), a.seed, adaptor=_load_adaptor(a, motor))
+    world = World(motor, _runtime_config(a), a.seed, adaptors=_load_adaptors(a, motor))
     if not 0 <= a.avatars <= MAX_AVATARS:
         raise ValueError(f"--avatars must be 0..{MAX_AVATARS}")
     for name in ("max_avatars", "avatars_per_client"):
@@ -399,9 +405,22 @@ def _eval_impulses(a) -> int:
     from .eval.control import format_impulses, impulses
     from .model.checkpoint import load_checkpoint
 
-    rows, what, body = impulses(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
+    rows, what, body, joints = impulses(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed,
+                                        _runtime_config(a))
     print(format_impulses(rows, what, a.n, a.seconds, body))
+    if a.png:
+        from .viz import contact_sheet
+        for preset, J in joints.items():
+            png = _suffixed(a.png, preset)
+            contact_sheet([j.numpy() for j in J[:4]], png, titles=[f"{preset} {k}" for k in range(min(4, len(J)))])
+            print(f"contact sheet: {png}")
     return 0
+
+
+def _suffixed(path: str, tag: str) -> Path:
+    """out.png -> out_TAG.png (one picture per row of a table)."""
+    p = Path(path)
+    return p.with_name(f"{p.stem}_{tag}{p.suffix or '.png'}")
 
 
 def _serve_args(a) -> list[str]:
@@ -588,7 +607,8 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--seed", type=int, default=0)
     _add_runtime_args(sv)
     sv.add_argument("--threads", type=int, help="torch threads for generation")
-    sv.add_argument("--adaptor", help="adaptor folder (action labels or reaching targets)")
+    sv.add_argument("--adaptor", action="append", help="adaptor folder (action labels, styles or reaching targets; "
+                    "repeatable; default: the adaptors shipped in models/ for the model's base; 'none' for none)")
     _add_guidance_arg(sv)
     sv.add_argument("--open-browser", action="store_true")
     sv.add_argument("--headless", action="store_true", help="no server: replay --script on a virtual clock")
@@ -609,7 +629,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--init", help="FILE.bvh[:FRAME] or FILE.npz[:FRAME]: start from a frame of a motion file")
     g.add_argument("--impulse", action="append", help="NAME@SECONDS, e.g. left_kick@2 (repeatable)")
     g.add_argument("--goal", action="append", help="VX,VZ[@SECONDS] world m/s, or free[@SECONDS] (repeatable)")
-    g.add_argument("--adaptor", help="adaptor folder from 'avatar-motor adapt' (labels or targets)")
+    g.add_argument("--adaptor", action="append", help="adaptor folder from 'avatar-motor adapt' (labels or targets; "
+                   "repeatable; default: the adaptors shipped in models/ for the model's base; 'none' for none)")
     _add_guidance_arg(g)
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
     g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
@@ -641,6 +662,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_runtime_args(e)
         e.add_argument("--seed", type=int, default=0)
         e.add_argument("--data", nargs="*")
+        e.add_argument("--png", help="impulses: contact sheets of 4 rollouts per preset, OUT_PRESET.png")
         e.set_defaults(func=fn)
     for name, helptext in (("actions", "R-precision, ASR, ANCR of action adaptors (Table A3)"),
                            ("reach", "minimal pelvis distance to 8 targets (Table A4)")):

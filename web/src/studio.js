@@ -127,7 +127,7 @@ function connect() {
       $("model").textContent = msg.model;
       $("licence").textContent = msg.licence;
       buildPresets(msg.presets);
-      buildLabels(msg.adaptor);
+      buildLabels(msg.adaptors);
       $("warn").textContent = "";
     } else if (msg.type === "stats") {
       // stalls: ticks at which generation had no frame ready (the avatar held its pose)
@@ -208,18 +208,32 @@ function buildPresets(presets) {
     $("presets").appendChild(b);
   }
 }
-// an action adaptor's labels: one button each, "none" releases, the slider is the CFG scale
-function buildLabels(adaptor) {
-  const labels = adaptor && adaptor.control === "label" ? adaptor.labels : [];
-  $("actions").style.display = labels.length ? "" : "none";
+// the label adaptors' labels (actions, styles): a row of buttons per adaptor, one "none" releases
+// whichever steers the avatar, the slider is the CFG scale; a reaching adaptor drives the magnet
+function buildLabels(adaptors) {
+  const withLabels = (adaptors || []).filter((a) => a.control === "label" && a.labels.length);
+  $("actions").style.display = withLabels.length ? "" : "none";
   $("labels").innerHTML = "";
-  for (const l of [...labels, null]) {
+  const button = (l) => {
     const b = document.createElement("button");
     b.textContent = l ?? "none";
     b.dataset.label = l ?? "";
     b.onclick = () => send({ type: "label", avatar: state.selected, label: l, scale: Number($("scale").value) });
-    $("labels").appendChild(b);
+    return b;
+  };
+  for (const a of withLabels) {
+    const row = document.createElement("div");
+    row.className = "group";
+    row.dataset.adaptor = a.name;
+    const name = document.createElement("span");
+    name.textContent = a.name;
+    row.appendChild(name);
+    for (const l of a.labels) row.appendChild(button(l));
+    $("labels").appendChild(row);
   }
+  $("labels").appendChild(button(null));
+  const reach = (adaptors || []).find((a) => a.control === "target");
+  $("magnet-mode").textContent = reach ? `the reaching adaptor (${reach.name}) walks there` : "a velocity goal walks there";
 }
 $("add").onclick = async () => {
   const p = state.pelvis() || [0, 0, 0];

@@ -65,6 +65,7 @@ class AdaptedDenoiser(nn.Module):
         cfg.validate()
         self.cfg = cfg
         self.guidance = "nearest"  # what a scale above 1 steers away from: "nearest" or "null" (see _negative)
+        self.name = "adaptor"  # what a client shows it as: its folder's name once loaded
         # which base weights this adaptor starts from, taken before any training changes them
         self.base_fingerprint = base_fingerprint(base)
         # fine-tuning trains the base itself: on a copy, so the shared base model (the runtime's
@@ -211,4 +212,21 @@ def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = Non
     if set(weights) != expected:
         raise ValueError(f"{folder}: adaptor weights do not match its config (missing {sorted(expected - set(weights))[:3]}, "
                          f"unexpected {sorted(set(weights) - expected)[:3]})")
+    # runs/adapt-actions/adaptor is named for its run, models/primal-bandai-actions for itself
+    model.name = str(meta.get("name") or (folder.resolve().parent.name if folder.name == "adaptor" else folder.name))
     return model.eval()
+
+
+def shipped_adaptors(models: str | Path, base) -> list[Path]:
+    """The adaptor folders under `models` (each holding adaptor.json) trained on this base's
+    weights: the ones a command loads when it is given none. base: a loaded base Motor."""
+    fp = base_fingerprint(base.net)
+    out = []
+    for meta_path in sorted(Path(models).glob("*/adaptor.json")):
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue  # not ours to judge here: loading it by name gives the clear error
+        if isinstance(meta, dict) and meta.get("base_fingerprint") == fp:
+            out.append(meta_path.parent)
+    return out

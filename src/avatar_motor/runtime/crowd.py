@@ -116,7 +116,10 @@ class AvatarState:
     v_goal: torch.Tensor | None = None  # (3,) world m/s
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
-    label: int | None = None  # action label index of the adaptor
+    # one adaptor steers an avatar at a time (a label or a target: the latest command replaces the
+    # other): its index in the crowd's adaptors, the label's index in its labels, its strength
+    adaptor: int | None = None
+    label: int | None = None
     control_scale: float = 1.0  # the adaptor's strength for this avatar's label or target (CFG weight)
     target: torch.Tensor | None = None  # (2,) world x, z for a reaching adaptor
     near_target: bool = False  # came within face_target_beyond of it: no facing goal until 2x that away
@@ -130,7 +133,7 @@ class AvatarState:
     @property
     def adapted(self) -> bool:
         """An adaptor steers it: a label or a target is set, at a scale above 0 (0 is the base model)."""
-        return (self.label is not None or self.target is not None) and self.control_scale > 0
+        return self.adaptor is not None and (self.label is not None or self.target is not None) and self.control_scale > 0
 
     @property
     def reaching(self) -> bool:
@@ -172,12 +175,14 @@ def validate_vector(v, n: int, what: str) -> torch.Tensor:
 
 
 class Crowd:
-    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0, adaptor=None):
-        """adaptor: an AdaptedDenoiser on motor's network (labels or targets), or None."""
+    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0, adaptors=None):
+        """adaptors: AdaptedDenoisers on motor's (base) network, for labels or targets: a list, one,
+        or None. Several may be loaded (actions, styles, reaching); each avatar is steered by at
+        most one of them at a time."""
         self.motor = motor
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
-        self.sampler = Sampler(motor, self.cfg, adaptor)
+        self.sampler = Sampler(motor, self.cfg, adaptors)
         self.cfg = self.sampler.cfg  # its steps resolved for this model
         self.seed = seed
         self.avatars: dict[int, AvatarState] = {}
@@ -209,9 +214,22 @@ class Crowd:
         del self.avatars[i]
 
     @property
-    def adaptor(self):
-        """The sampler's adaptor (labels or targets), or None."""
-        return self.sampler.adaptor
+    def adaptors(self) -> list:
+        """The loaded adaptors (labels or targets), in the order given."""
+        return self.sampler.adaptors
+
+    def _adaptor_for(self, control: str, label: str | None = None) -> int:
+        """The index of the first adaptor of that control (and knowing that label)."""
+        for k, ad in enumerate(self.adaptors):
+            if ad.cfg.control == control and (label is None or label in ad.cfg.labels):
+                return k
+        if control == "target":
+            raise ValueError("no reaching adaptor loaded (avatar-motor adapt with configs/reach.json, then --adaptor DIR)")
+        known = sorted({lb for ad in self.adaptors if ad.cfg.control == "label" for lb in ad.cfg.labels})
+        if not known:
+            raise ValueError("no action adaptor loaded: labels need one (avatar-motor adapt with configs/actions.json, "
+                             "then --adaptor DIR)")
+        raise ValueError(f"unknown label {label!r}; the loaded adaptors know {known}")
 
     def _get(self, i: int) -> AvatarState:
         if i not in self.avatars:
@@ -286,7 +304,7 @@ class Crowd:
         a.regenerating = True
 
     def _plan(self, a: AvatarState) -> tuple:
-        return (a.v_goal, a.facing_goal, a.label, a.target, a.control_scale)
+        return (a.v_goal, a.facing_goal, (a.adaptor, a.label), a.target, a.control_scale)
 
     def _differs(self, a: AvatarState) -> bool:
         """Whether a's controls differ from those its latest segment was made for beyond the
@@ -323,15 +341,13 @@ class Crowd:
         guidance of that weight, against the adaptor's `guidance` (AdaptedDenoiser._negative)."""
         a = self._get(i)
         if label is None:
-            a.label = None
+            if a.label is not None:
+                a.label, a.adaptor = None, None
         else:
-            if self.adaptor is None or self.adaptor.cfg.control != "label":
-                raise ValueError("no action adaptor loaded: labels need one (avatar-motor adapt actions, then --adaptor DIR)")
-            labels = self.adaptor.cfg.labels
-            if label not in labels:
-                raise ValueError(f"unknown label {label!r}; this adaptor knows {labels}")
+            k = self._adaptor_for("label", label)
             _check_scale(scale)
-            a.label, a.control_scale = labels.index(label), float(scale)
+            a.adaptor, a.label, a.target = k, self.adaptors[k].cfg.labels.index(label), None
+            a.control_scale = float(scale)
         self._changed(a)
 
     def set_target(self, i: int, position, scale: float = 1.0) -> None:
@@ -340,12 +356,13 @@ class Crowd:
         the base model's continuity weighs more (measured: slower, less sliding)."""
         a = self._get(i)
         if position is None:
-            a.target = None
+            if a.target is not None:
+                a.target, a.adaptor = None, None
         else:
-            if self.adaptor is None or self.adaptor.cfg.control != "target":
-                raise ValueError("no reaching adaptor loaded (avatar-motor adapt reach, then --adaptor DIR)")
+            k = self._adaptor_for("target")
             _check_scale(scale)
-            a.target, a.control_scale = validate_vector(position, 2, "target (x, z)"), float(scale)
+            a.target, a.label, a.adaptor = validate_vector(position, 2, "target (x, z)"), None, k
+            a.control_scale = float(scale)
         a.near_target = False
         self._changed(a)
 
@@ -440,7 +457,7 @@ class Crowd:
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, impulse_velocity=dv, impulse=impulse,
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
             control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
-            adapted=[a.adapted for a in avs], v_goal=[a.v_goal for a in avs],
+            adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[a.v_goal for a in avs],
             facing_goal=[self._facing_goal(a) for a in avs])
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:

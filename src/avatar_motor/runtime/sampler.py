@@ -1,8 +1,8 @@
 """The sampler (DESIGN §5): network + reverse diffusion + guidance for a batch of segments, in each
 segment's canonical frame. It reads a SegmentBatch and the canonical initial states and returns
 the decoded segments (float64, before post-processing); it changes no avatar. Steering impulses
-condition the network, gradient guidance steers the denoised estimate, and an adaptor (action
-labels or reaching targets) replaces the base network for the avatars it steers."""
+condition the network, gradient guidance steers the denoised estimate, and adaptors (action
+labels, styles, reaching targets) replace the base network for the avatars they steer."""
 from __future__ import annotations
 
 import dataclasses
@@ -46,18 +46,20 @@ class Cancelled(Exception):
 
 
 class Sampler:
-    def __init__(self, motor: Motor, cfg, adaptor=None):
-        """cfg: the RuntimeConfig (steps, eta, steering and guidance weights); adaptor: an
-        AdaptedDenoiser on motor's network, or None. self.cfg is cfg with its steps resolved (0:
-        the model's own default)."""
+    def __init__(self, motor: Motor, cfg, adaptors=None):
+        """cfg: the RuntimeConfig (steps, eta, steering and guidance weights); adaptors:
+        AdaptedDenoisers on motor's (base) network, a list, one, or None. self.cfg is cfg with its
+        steps resolved (0: the model's own default)."""
         self.kind = motor.sampler["kind"]
         steps = cfg.steps or motor.sampler["steps"]
         fewstep.check_steps(self.kind, steps)
         cfg = dataclasses.replace(cfg, steps=steps)
-        self.motor, self.cfg, self.adaptor = motor, cfg, adaptor
-        if adaptor is not None and self.kind != "ddpm" and adaptor.base_fingerprint != motor.sampler.get("base_fingerprint"):
-            raise ValueError(f"the adaptor was trained on other base weights than {motor.name}'s base "
-                             f"{motor.sampler.get('base')!r}; retrain it on that base")
+        adaptors = [] if adaptors is None else list(adaptors) if isinstance(adaptors, (list, tuple)) else [adaptors]
+        self.motor, self.cfg, self.adaptors = motor, cfg, adaptors
+        for ad in adaptors:
+            if self.kind != "ddpm" and ad.base_fingerprint != motor.sampler.get("base_fingerprint"):
+                raise ValueError(f"an adaptor was trained on other base weights than {motor.name}'s base "
+                                 f"{motor.sampler.get('base')!r}; retrain it on that base")
         if cfg.backend not in BACKENDS:
             raise ValueError(f"runtime backend must be one of {BACKENDS}, got {cfg.backend!r}")
         # the base network as ONNX Runtime runs it (an adaptor's avatars use torch)
@@ -68,20 +70,22 @@ class Sampler:
         the canonical initial states x0c (B, 267). cancelled() -> True stops between network calls
         (raises Cancelled): the batch is no longer wanted.
 
-        With a few-step model, the avatars an adaptor steers are sampled as the adaptor was
-        trained: its base with DDPM (ADAPTOR_STEPS); the others with the few-step chain. Rows are
-        independent, so the split changes no avatar's motion."""
-        if self.kind != "ddpm" and self.adaptor is not None and any(batch.adapted):
-            on = torch.tensor(batch.adapted)
-            out = torch.empty(len(batch), self.motor.net.cfg.frames, STATE_DIM)
-            for rows, ddpm in ((on.nonzero()[:, 0], True), ((~on).nonzero()[:, 0], False)):
-                if len(rows):
-                    out[rows] = self._sample(_subset(batch, rows), x0c[rows], Transform(tf.R[rows], tf.t[rows]),
-                                             cancelled, ddpm)
-            return out
-        return self._sample(batch, x0c, tf, cancelled, self.kind == "ddpm")
+        The avatars an adaptor steers are sampled as it was trained: on its base with DDPM (with a
+        few-step model, ADAPTOR_STEPS), one batch per adaptor; the others with the model's own
+        sampler. Rows are independent, so the split changes no avatar's motion."""
+        groups = sorted({k for k in batch.adaptors if k is not None})
+        if not groups:
+            return self._sample(batch, x0c, tf, cancelled, self.kind == "ddpm", None)
+        which = torch.tensor([-1 if k is None else k for k in batch.adaptors])
+        out = torch.empty(len(batch), self.motor.net.cfg.frames, STATE_DIM)
+        for k in [-1, *groups]:
+            rows = (which == k).nonzero()[:, 0]
+            if len(rows):
+                out[rows] = self._sample(_subset(batch, rows), x0c[rows], Transform(tf.R[rows], tf.t[rows]), cancelled,
+                                         k >= 0 or self.kind == "ddpm", self.adaptors[k] if k >= 0 else None)
+        return out
 
-    def _sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled, ddpm: bool) -> torch.Tensor:
+    def _sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled, ddpm: bool, adaptor) -> torch.Tensor:
         cfg, motor = self.cfg, self.motor
         Rt = tf.R.transpose(-1, -2)
         # the network sees the impulse in x0's velocities; the blending after it keeps the true x0
@@ -92,7 +96,7 @@ class Sampler:
         cond = motor.norm.encode(x0_cond.float())
         guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float())
         N = motor.net.cfg.frames
-        denoise = self._denoiser(batch, tf, cond)
+        denoise = self._denoiser(batch, tf, cond, adaptor)
         if cancelled is not None:
             inner = denoise
 
@@ -109,15 +113,15 @@ class Sampler:
                                    motor.net.cfg.latent)
         return motor.norm.decode(seg_n)
 
-    def _denoiser(self, batch: SegmentBatch, tf, cond):
-        """The base network, or the adaptor with per-avatar controls (scale 0 for the avatars it does
-        not steer, which is the base model exactly)."""
-        net, ad = self.net, self.adaptor
-        if ad is None or not any(batch.adapted):
+    def _denoiser(self, batch: SegmentBatch, tf, cond, ad):
+        """The base network, or the adaptor ad with each avatar's controls (every row of the batch
+        is one it steers)."""
+        net = self.net
+        if ad is None:
             if self.motor.net.cfg.latent:
                 return lambda x_t, t, z=None: net(t, x_t, cond, z)
             return lambda x_t, t, z=None: net(t, x_t, cond)
-        scale = torch.tensor([s if on else 0.0 for on, s in zip(batch.adapted, batch.control_scales)])
+        scale = torch.tensor(batch.control_scales, dtype=torch.float32)
         if ad.cfg.control == "label":
             y = torch.tensor([lb if lb is not None else ad.null_label for lb in batch.labels])
         else:

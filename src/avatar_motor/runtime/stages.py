@@ -28,15 +28,20 @@ class SegmentBatch:
     impulse: torch.Tensor  # (B,) bool: an impulse is applied at this segment
     shapes: torch.Tensor  # (B, SHAPE_DIM)
     gens: list  # each avatar's torch.Generator
-    labels: list  # adaptor label index or None
+    labels: list  # label index in the steering adaptor's labels, or None
     control_scales: list[float]
     targets: list  # world (x, z) tensors or None
-    adapted: list[bool]  # an adaptor steers this avatar
+    adaptors: list  # index of the adaptor (Sampler.adaptors) that steers each avatar, or None
     v_goal: list  # world (3,) m/s or None
     facing_goal: list  # world unit (3,) or None
 
     def __len__(self) -> int:
         return len(self.avatars)
+
+    @property
+    def adapted(self) -> list[bool]:
+        """An adaptor steers the avatar."""
+        return [k is not None for k in self.adaptors]
 
     @property
     def steered(self) -> torch.Tensor:

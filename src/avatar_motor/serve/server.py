@@ -271,17 +271,15 @@ class Server:
             return {"type": "welcome", "version": P.VERSION, "auth": "token required: send {\"type\": \"hello\", \"token\": ...}"}
         return {"type": "welcome", "version": P.VERSION, "fps": FPS, "model": self.world.motor.name,
                 "joint_names": JOINT_NAMES, "parents": PARENTS, "presets": sorted(IMPULSE_PRESETS),
-                "commands": P.COMMANDS, "avatars": self.world.crowd.ids(), "adaptor": self._adaptor_info(),
+                "commands": P.COMMANDS, "avatars": self.world.crowd.ids(), "adaptors": self._adaptor_info(),
                 "licence": self.world.motor.config.get("licence", ""),
                 "limits": {"avatars": self.world.max_avatars, "avatars_per_client": self.per_client,
                            "commands_per_second": self.rate, "burst": BURST}}
 
-    def _adaptor_info(self) -> dict | None:
-        """What the loaded adaptor controls, so a client can offer its labels (or a target)."""
-        ad = self.world.crowd.adaptor
-        if ad is None:
-            return None
-        return {"control": ad.cfg.control, "labels": list(ad.cfg.labels), "kind": ad.cfg.kind}
+    def _adaptor_info(self) -> list[dict]:
+        """What each loaded adaptor controls, so a client can offer its labels (or a target)."""
+        return [{"name": ad.name, "control": ad.cfg.control, "labels": list(ad.cfg.labels), "kind": ad.cfg.kind}
+                for ad in self.world.crowd.adaptors]
 
     async def _handle(self, client: Client, text: str) -> None:
         cid = None
@@ -341,7 +339,7 @@ class Server:
         loop = asyncio.get_running_loop()
         if self.max_avatars is None:
             w = self.world
-            cap, keep, line = await loop.run_in_executor(None, measure_capacity, w.motor, w.config, w.crowd.adaptor)
+            cap, keep, line = await loop.run_in_executor(None, measure_capacity, w.motor, w.config, w.crowd.adaptors)
             log.info(line)
             self.max_avatars, w.crowd.keep_on_cut = cap, keep
         self.world.max_avatars = self.max_avatars

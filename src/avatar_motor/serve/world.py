@@ -48,12 +48,12 @@ class World:
     seed: int = 0
     record_seconds: float = 60.0
 
-    adaptor: object = None  # an AdaptedDenoiser for labels or targets
+    adaptors: list = field(default_factory=list)  # AdaptedDenoisers for labels, styles or targets
     max_avatars: int = MAX_AVATARS  # spawns beyond are refused (the server sets what it keeps in real time)
 
     def __post_init__(self):
         self.lock = threading.RLock()
-        self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptor)
+        self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptors)
         # frames kept when a command cuts an avatar's queue, shown while its new segment is made
         # (Crowd._changed): as many frames as a segment takes to make, so a command shows within
         # 33-133 ms; the server sets it from the measured segment time, replays from the script
@@ -121,8 +121,7 @@ class World:
     def _cmd_target(self, cmd):
         i = self._avatar(cmd)
         pos = cmd.get("position")
-        ad = self.crowd.adaptor
-        if ad is not None and ad.cfg.control == "target":  # a reaching adaptor walks there by itself
+        if any(ad.cfg.control == "target" for ad in self.crowd.adaptors):  # a reaching adaptor walks there by itself
             self.crowd.set_target(i, pos, float(cmd.get("scale", 1.0)))
             return
         if pos is None:
@@ -263,13 +262,13 @@ def frames_to_keep(seconds: float, cap: int = MAX_KEEP) -> int:
     return max(1, min(cap, math.ceil(seconds * FPS)))
 
 
-def measure_capacity(motor: Motor, config: RuntimeConfig, adaptor=None, probe: int = 8) -> tuple[int, int, str]:
+def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: int = 8) -> tuple[int, int, str]:
     """How many avatars this machine keeps in real time, and how many frames a cut must keep.
 
     Times one segment for 1 and for `probe` avatars (after a warm-up), fits cost = a + b x avatars
     and keeps the batch within 60 % of a segment's 0.5 s (the clock, encoding and this machine's
     noise take the rest). Returns (cap, keep_on_cut, a line for the log)."""
-    crowd = Crowd(motor, config, 0, adaptor)
+    crowd = Crowd(motor, config, 0, adaptors)
     for k in range(probe):
         crowd.spawn(position=(1.0 * k, 0.0))
 
