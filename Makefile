@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-8)
 WEB_DIST := src/avatar_motor/serve/static/dist/studio.js
 
-.PHONY: studio test install web chromium clean
+.PHONY: studio test install web chromium clean models data
 
 install: $(STAMP)
 
@@ -34,3 +34,42 @@ test: install web chromium
 
 clean:
 	rm -rf $(VENV) web/node_modules src/avatar_motor/serve/static/dist test-artifacts
+
+# The shipped model family, rebuilt in dependency order: the motion data, the base (three stages),
+# its one-step EMDM sampler, then the adaptors (actions, styles, reaching), each shipped into
+# models/ as float16 with the fingerprint of the base it was trained on. About 8.5 h on 2 CPU
+# cores (base 3.5 + 1 h, EMDM 1.1 h, adaptors 3 x 0.5 h, evaluations); needs ../shared. Starts
+# afresh (the runs below are deleted) unless RESUME=1, which continues each interrupted job. A
+# shipped folder keeps its card.md: bring its figures up to date from runs/evals/.
+SHARED ?= ../shared/data/bandai-namco
+PYBULLET ?= pybullet==3.2.7
+FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach
+AM := $(BIN)/avatar-motor
+
+data: install
+	$(AM) data import $(SHARED)/dataset-1/data
+	$(AM) data import $(SHARED)/dataset-2.tar.xz
+	$(BIN)/pip download --no-deps -q $(PYBULLET) -d runs/downloads
+	$(AM) data import runs/downloads/pybullet-*.whl --name deepmimic
+
+models: data
+	$(if $(RESUME),,rm -rf $(FAMILY_RUNS))
+	$(AM) train --config configs/base.json
+	$(AM) train --config configs/base-continue.json
+	$(AM) train --config configs/base-deepmimic.json
+	$(AM) ship runs/base-deepmimic/checkpoint models/primal-bandai
+	$(AM) distill --config configs/emdm.json
+	$(AM) ship runs/emdm/checkpoint models/primal-bandai-emdm --steps 1
+	$(AM) adapt --config configs/actions.json
+	$(AM) ship runs/adapt-actions/adaptor models/primal-bandai-actions
+	$(AM) adapt --config configs/styles.json
+	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles
+	$(AM) adapt --config configs/reach.json
+	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach
+	mkdir -p runs/evals
+	$(AM) eval realism --model models/primal-bandai > runs/evals/realism.txt && cat runs/evals/realism.txt
+	$(AM) eval impulses --model models/primal-bandai-emdm > runs/evals/impulses.txt && cat runs/evals/impulses.txt
+	$(AM) eval samplers --consistency '' > runs/evals/samplers.txt && cat runs/evals/samplers.txt
+	$(AM) eval actions --adaptors actions=models/primal-bandai-actions --evaluators 5 --adaptor-scale 2.5 > runs/evals/actions.txt && cat runs/evals/actions.txt
+	$(AM) eval actions --adaptors styles=models/primal-bandai-styles --label-key style --data dataset-2 > runs/evals/styles.txt && cat runs/evals/styles.txt
+	$(AM) eval reach --adaptors reach=models/primal-bandai-reach > runs/evals/reach.txt && cat runs/evals/reach.txt

@@ -304,14 +304,27 @@ def test_shipped_adaptors_are_found_for_their_base(tmp_path):
     from .conftest_models import tiny_motor
     motor = tiny_motor(tmp_path)
     models = tmp_path / "models"
-    save_adaptor(models / "tiny-actions", AdaptedDenoiser(motor.net, AdaptorConfig(labels=["a"])), "tiny")
+    save_adaptor(models / "tiny-actions", AdaptedDenoiser(motor.net, AdaptorConfig(labels=["a"])), motor.name)
     other = load_checkpoint(tmp_path / "tiny").net
     torch.nn.init.normal_(other.out.weight if hasattr(other, "out") else next(other.parameters()), std=0.1)
-    save_adaptor(models / "other-actions", AdaptedDenoiser(other, AdaptorConfig(labels=["a"])), "tiny")
+    save_adaptor(models / "other-actions", AdaptedDenoiser(other, AdaptorConfig(labels=["a"])), motor.name)
     (models / "broken").mkdir()
     (models / "broken" / "adaptor.json").write_text("{not json")
     assert shipped_adaptors(models, motor) == [models / "tiny-actions"]
     assert load_adaptor(models / "tiny-actions", motor.net).name == "tiny-actions"
+    # `ship`: float16, named for its folder, its card written once and kept on a re-ship
+    from safetensors.torch import load_file
+    from avatar_motor.cli import main
+    assert main(["ship", str(models / "tiny-actions"), str(models / "tiny-styles"), "--base", str(tmp_path / "tiny")]) == 0
+    assert {v.dtype for v in load_file(str(models / "tiny-styles" / "adaptor.safetensors")).values()} == {torch.float16}
+    assert "non-commercial" in (models / "tiny-styles" / "card.md").read_text()
+    (models / "tiny-styles" / "card.md").write_text("# hand-written\n")
+    assert main(["ship", str(models / "tiny-actions"), str(models / "tiny-styles"), "--base", str(tmp_path / "tiny")]) == 0
+    assert (models / "tiny-styles" / "card.md").read_text() == "# hand-written\n"
+    assert load_adaptor(models / "tiny-styles", motor.net).name == "tiny-styles"
+    assert shipped_adaptors(models, motor) == [models / "tiny-actions", models / "tiny-styles"]
+    # an adaptor shipped onto another base's weights is refused, naming the fix
+    assert main(["ship", str(models / "other-actions"), str(models / "x"), "--base", str(tmp_path / "tiny")]) == 2
 
 
 def test_adaptation_evals_run_on_tiny_models(tmp_path, caplog):

@@ -465,6 +465,39 @@ def _adapt(a) -> int:
     return 0
 
 
+def _ship(a) -> int:
+    from .model.adaptor import base_fingerprint, ship_adaptor
+    from .model.checkpoint import load_checkpoint, ship_checkpoint
+
+    src, dst = Path(a.src), Path(a.dst)
+    card = (dst / "card.md").read_text() if (dst / "card.md").exists() else None
+    if (src / "adaptor.json").exists():
+        base = load_checkpoint(a.base)
+        card = card or _stub_card(dst.name, f"adaptor trained on {base.name} (weights {base_fingerprint(base.net)})")
+        ship_adaptor(src, dst, base, card)
+        print(f"{dst}: float16 adaptor on {base.name} ({base_fingerprint(base.net)})")
+        return 0
+    m = load_checkpoint(src)
+    extra = {"name": dst.name}
+    if m.sampler["kind"] != "ddpm":
+        s = dict(m.config["sampler"])
+        s["steps"] = a.steps or s["steps"]
+        s["base"] = Path(a.base).name
+        if base_fingerprint(load_checkpoint(a.base).net) != s["base_fingerprint"]:
+            raise ValueError(f"{src} was not trained from {a.base}'s weights; rebuild it on that base (make models)")
+        extra["sampler"] = s
+    ship_checkpoint(src, dst, card or _stub_card(dst.name, f"{m.sampler['kind']} model, weights {base_fingerprint(m.net)}"), extra)
+    print(f"{dst}: float16 {m.sampler['kind']} model, fingerprint {base_fingerprint(load_checkpoint(dst).net)}")
+    return 0
+
+
+def _stub_card(name: str, what: str) -> str:
+    """A card for an artifact shipped for the first time; its figures are added from its evals."""
+    return (f"# {name} (non-commercial)\n\n{what}. Trained on CC BY-NC 4.0 data: non-commercial use only; the code "
+            "that made it is Apache-2.0. Its recipe is its config in configs/ (`make models` rebuilds the family); "
+            "no figures were recorded yet.\n")
+
+
 def _named_adaptors(specs: list[str], motor, guidance: str):
     """NAME=DIR items -> {name: AdaptedDenoiser}; the name 'base' (no dir) is the base model."""
     from .model.adaptor import load_adaptor
@@ -594,6 +627,14 @@ def build_parser() -> argparse.ArgumentParser:
     ls = d.add_parser("list", help="list the motion caches (and with --clips their clips)")
     ls.add_argument("--clips", action="store_true")
     ls.set_defaults(func=_data_list)
+
+    sh = sub.add_parser("ship", help="copy a trained checkpoint or adaptor into models/: float16, named for its folder, "
+                        "its card kept (or a first one written)")
+    sh.add_argument("src", help="a run's checkpoint folder (runs/.../checkpoint) or adaptor folder (runs/.../adaptor)")
+    sh.add_argument("dst", help="the shipped folder, e.g. models/primal-bandai-actions")
+    sh.add_argument("--base", default=str(BASE_MODEL), help="the base an adaptor or few-step model was trained on")
+    sh.add_argument("--steps", type=int, help="a few-step model's default steps (default: as trained)")
+    sh.set_defaults(func=_ship)
 
     sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")
     sv.add_argument("--model", default=str(DEFAULT_MODEL))

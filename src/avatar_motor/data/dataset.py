@@ -194,7 +194,8 @@ def _fingerprint(cache_paths: list[Path]) -> list[list]:
 
 def load_or_compute_stats(ds: SegmentDataset, cache_paths: list[Path]) -> Normalizer:
     p = stats_path(cache_paths)
-    sources = _fingerprint(cache_paths)
+    # the windows' weights change what the statistics cover (they are drawn as training draws)
+    sources = _fingerprint(cache_paths) + ([["weights", ds.cfg.weights]] if ds.cfg.weights else [])
     if p.exists():
         try:
             d = json.loads(p.read_text())

@@ -171,16 +171,33 @@ def _adaptor_complete(folder: Path) -> bool:
     return (folder / "adaptor.safetensors").exists() and (folder / "adaptor.json").exists()
 
 
-def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, info: dict | None = None) -> Path:
-    """Write so that a kill at any instant leaves the old adaptor or the new one (io/atomic.py)."""
+def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, info: dict | None = None,
+                 card: str | None = None, half: bool = False) -> Path:
+    """Write so that a kill at any instant leaves the old adaptor or the new one (io/atomic.py).
+    half=True stores float16 weights (shipped adaptors; loading casts back to float32)."""
     meta = {"format": ADAPTOR_FORMAT, "adaptor": asdict(model.cfg), "base_model": base_name,
             "base_fingerprint": model.base_fingerprint, **(info or {})}
+    dtype = torch.float16 if half else None
 
     def fill(tmp: Path) -> None:
-        save_file({k: v.detach().contiguous() for k, v in model.adaptor_state().items()}, str(tmp / "adaptor.safetensors"))
+        save_file({k: v.detach().to(dtype or v.dtype).contiguous() for k, v in model.adaptor_state().items()},
+                  str(tmp / "adaptor.safetensors"))
+        if card is not None:
+            (tmp / "card.md").write_text(card)
         (tmp / "adaptor.json").write_text(json.dumps(meta, indent=1))
 
     return replace_folder(folder, fill, _adaptor_complete)
+
+
+def ship_adaptor(src: str | Path, dst: str | Path, base, card: str) -> Path:
+    """Copy a trained adaptor (on the loaded base Motor `base`) into a shippable one: float16
+    weights, its card, named for its folder."""
+    src = Path(src)
+    model = load_adaptor(src, base.net, base.name)
+    meta = json.loads((src / "adaptor.json").read_text())
+    info = {k: v for k, v in meta.items() if k not in ("format", "adaptor", "base_model", "base_fingerprint")}
+    info["name"] = Path(dst).name
+    return save_adaptor(dst, model, base.name, info, card, half=True)
 
 
 def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = None) -> AdaptedDenoiser:
