@@ -26,3 +26,16 @@ def test_clear_errors_for_missing_things(tmp_path, capsys):
     assert main(["data", "import", str(tmp_path / "missing")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert main(["data", "list"]) == 0
+
+
+def test_eval_impulses_reports_unpushed_acrobatics_and_draws_each_preset(tmp_path, capsys):
+    from avatar_motor.runtime.crowd import IMPULSE_PRESETS
+    from .conftest_models import tiny_motor
+    tiny_motor(tmp_path)
+    assert main(["eval", "impulses", "--model", str(tmp_path / "tiny"), "--n", "2", "--seconds", "1",
+                 "--png", str(tmp_path / "imp.png")]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split()[0] for line in out.splitlines() if line.split() and line.split()[0] in ("none", *IMPULSE_PRESETS)]
+    assert rows == ["none", *IMPULSE_PRESETS]
+    for preset in rows:
+        assert (tmp_path / f"imp_{preset}.png").stat().st_size > 1000
