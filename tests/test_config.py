@@ -45,6 +45,14 @@ def test_a_cache_gets_its_share_of_the_windows():
     share = np.mean(["small" in ds.clip_names[int(c)] for c in clips])
     assert abs(share - 0.25) < 0.03  # uniform would give 28 of 3,388 windows, 0.8 %
     assert SegmentDataset([big, small], SegmentConfig(split="all")).window_cdf is None
+    # a clip of a cache by its file name: taken out of its cache's share
+    ds = SegmentDataset([big, small], SegmentConfig(split="all", weights={"small": 0.2, "small/small_1": 0.1}))
+    clips = torch.cat([ds.sample_indexed(512, g)[2] for _ in range(8)])
+    names = [ds.clip_names[int(c)] for c in clips]
+    assert abs(np.mean([n == "small_1.bvh" for n in names]) - 0.1) < 0.03
+    assert abs(np.mean([n == "small_0.bvh" for n in names]) - 0.2) < 0.03
+    with pytest.raises(ValueError, match="no window of this split"):
+        SegmentDataset([big, small], SegmentConfig(split="all", weights={"small/kick": 0.1}))
     with pytest.raises(ValueError, match=r"names \['tiny'\], which the training data lacks"):
         SegmentDataset([big, small], SegmentConfig(split="all", weights={"tiny": 0.1}))
     with pytest.raises(ValueError, match="must sum to 1"):

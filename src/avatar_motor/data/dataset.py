@@ -29,8 +29,10 @@ class SegmentConfig:
     shape_augment: float = 1.0  # std of random body-shape vectors (0 = average body only)
     mirror: bool = True
     split: str = "train"  # "train", "heldout" or "all"
-    # share of the windows drawn from a cache, by cache name (e.g. {"deepmimic": 0.1}); the caches
-    # not named share the rest in proportion to their windows. Default: every window alike.
+    # share of the windows drawn from a cache, by cache name (e.g. {"deepmimic": 0.1}), or from the
+    # clips of a cache whose file names contain a text ("deepmimic/kick"; these are taken out of
+    # their cache's share); the windows not named share the rest in proportion to their number.
+    # Default: every window alike.
     weights: dict[str, float] = field(default_factory=dict)
 
 
@@ -71,8 +73,8 @@ class SegmentDataset:
         # every valid window start, weighted uniformly over frames, and the clip it belongs to
         self.window_starts = torch.cat([torch.arange(s, s + n - need + 1) for s, n in zip(starts, lens)])
         self.window_clip = torch.cat([torch.full((n - need + 1,), k) for k, n in enumerate(lens)])
-        self.window_cdf = _window_cdf([c.meta.get("name") or Path(str(c.path)).stem for c in caches],
-                                      torch.tensor(clip_cache)[self.window_clip], self.cfg.weights)
+        self.window_cdf = _window_cdf([c.meta.get("name") or Path(str(c.path)).stem for c in caches], clip_cache, names,
+                                      self.window_clip, self.cfg.weights)
 
     def __len__(self) -> int:
         return len(self.window_starts)
@@ -122,29 +124,39 @@ class SegmentDataset:
         return xc.float(), shapes.float()
 
 
-def _window_cdf(names: list[str], window_cache: torch.Tensor, weights: dict[str, float]) -> torch.Tensor | None:
-    """Cumulative draw probability of each window (None: uniform) for `SegmentConfig.weights`:
-    a named cache's windows share its weight, the others the rest, each cache's windows alike."""
+def _window_cdf(cache_names: list[str], clip_cache: list[int], clip_keys: list[str], window_clip: torch.Tensor,
+                weights: dict[str, float]) -> torch.Tensor | None:
+    """Cumulative draw probability of each window (None: uniform) for `SegmentConfig.weights`: the
+    windows of each named group (a cache, or "cache/text": its clips whose file names hold the
+    text, which leave their cache's group) share its weight, the rest share what is left, each
+    window of a group alike."""
     if not weights:
         return None
-    unknown = sorted(set(weights) - set(names))
-    if unknown:
-        raise ValueError(f"segment.weights names {unknown}, which the training data lacks; its caches are {names}")
     if any(not 0 < w <= 1 for w in weights.values()):
         raise ValueError(f"segment.weights must be shares in (0, 1], got {weights}")
-    counts = torch.bincount(window_cache, minlength=len(names)).double()
-    named = torch.tensor([n in weights for n in names])
-    empty = [n for n, k in zip(names, counts) if n in weights and k == 0]
+    keys = list(weights)
+    unknown = sorted(k for k in keys if k.split("/", 1)[0] not in cache_names)
+    if unknown:
+        raise ValueError(f"segment.weights names {unknown}, which the training data lacks; its caches are {cache_names}")
+
+    def group(c: int) -> int:  # a clip's weights key (the more specific first), or -1
+        cache, name = cache_names[clip_cache[c]], Path(clip_keys[c]).name
+        for k, key in enumerate(keys):
+            if "/" in key and key.split("/", 1)[0] == cache and key.split("/", 1)[1] in name:
+                return k
+        return keys.index(cache) if cache in keys else -1
+
+    win_group = torch.tensor([group(c) for c in range(len(clip_keys))])[window_clip]
+    counts = torch.stack([(win_group == k).sum() for k in range(-1, len(keys))]).double()  # [rest, key 0, ...]
+    empty = [key for key, n in zip(keys, counts[1:]) if n == 0]
     if empty:
         raise ValueError(f"segment.weights names {empty}, which has no window of this split; drop it from the weights")
     rest = 1.0 - sum(weights.values())
-    if rest < -1e-9 or (rest > 1e-9 and not (~named & (counts > 0)).any()):
-        raise ValueError(f"segment.weights {weights} must sum to 1 over the caches {names} when all are named, "
+    if rest < -1e-9 or (rest > 1e-9 and counts[0] == 0):
+        raise ValueError(f"segment.weights {weights} must sum to 1 over the caches {cache_names} when all are named, "
                          "and below 1 when some are not")
-    share = torch.tensor([weights.get(n, 0.0) for n in names], dtype=torch.float64)
-    free = ~named & (counts > 0)
-    share[free] = max(rest, 0.0) * counts[free] / counts[free].sum()
-    p = share[window_cache] / counts[window_cache]
+    share = torch.tensor([max(rest, 0.0), *weights.values()], dtype=torch.float64)
+    p = share[win_group + 1] / counts[win_group + 1]
     cdf = torch.cumsum(p, 0)
     return cdf / cdf[-1]
 
