@@ -89,6 +89,31 @@ def test_the_body_stage_makes_one_body_and_keeps_the_feet_above_ground():
     assert (out[..., [10, 11], :] - target[..., [10, 11], :]).norm(dim=-1).max() < 1e-3
 
 
+def test_the_body_stage_lifts_a_sinking_trunk_onto_the_ground_pose_unchanged():
+    """A body tipping over whose head and back dip under the ground is lifted per frame onto the
+    ground: its lowest joint at 0, its trunk's and arms' rotations and the frames above the ground
+    as they were."""
+    off = rest_offsets(None, torch.float64).expand(2, 22, 3)
+    still = standing_state().double()[None, None].repeat(2, 16, 1)
+    u = unpack(still)
+    pitch = torch.linspace(0.0, 3.0, 16, dtype=torch.float64)  # tipping over backward onto the back
+    root_rot = rot.axis_angle_to_matrix(torch.stack((-pitch, 0 * pitch, 0 * pitch), -1))[None].expand(2, 16, 3, 3)
+    root = u.root_pos.clone()
+    root[..., 1] = 0.3  # the pelvis low: the head goes under as the body tips
+    J, _ = forward_kinematics(root, root_rot, u.local_rot, off[:, None])
+    seg = pack(root, root_rot, u.local_rot, J, torch.zeros_like(J))
+    out = solve_body(still[:, 0], seg, off, 0.0)
+    Jo, uo = joints_of(out), unpack(out)
+    assert float(J[..., 1].min()) < -0.3  # it did sink
+    assert float(Jo[..., 1].min()) > -1e-9 and torch.allclose(Jo[..., 1].amin(-1).clamp(max=0.0), torch.zeros(2, 16, dtype=torch.float64))
+    trunk_and_arms = [j - 1 for j in range(1, 22) if j not in (1, 2, 4, 5, 7, 8)]  # the legs may bend to stay up
+    assert torch.allclose(uo.local_rot[:, :, trunk_and_arms], u.local_rot[:, :, trunk_and_arms])
+    assert torch.allclose(uo.root_rot, root_rot)
+    above = J[..., 1].amin(-1) >= 0  # frames that were above the ground are untouched
+    assert above.any() and torch.allclose(Jo[above], J[above])
+    assert float(body_mismatch(out, off[:, None]).max()) < 1e-9
+
+
 def test_a_pinned_foot_stays_where_it_stood_whatever_the_rotations_do():
     off = rest_offsets(None, torch.float64).expand(2, 22, 3)
     # a standing body whose rotations slowly spread its legs: both feet would slide apart
@@ -267,8 +292,13 @@ def test_bad_arguments_are_named(motor, tmp_path):
 def test_presets_follow_table_a1():
     names = {"left_kick", "right_kick", "forward_run", "back_flip", "forward_roll"}
     assert set(IMPULSE_PRESETS) == names
-    from avatar_motor.body.skeleton import JOINT_INDEX
-    assert IMPULSE_PRESETS["right_kick"][0] == [JOINT_INDEX["right_knee"], JOINT_INDEX["right_ankle"]]
+    from avatar_motor.body.skeleton import JOINT_INDEX, MIRROR
+    # the kicks (retuned): the kicking leg's knee, ankle and foot, up and forward; mirror images
+    assert IMPULSE_PRESETS["right_kick"][0] == [JOINT_INDEX[f"right_{j}"] for j in ("knee", "ankle", "foot")]
+    assert IMPULSE_PRESETS["left_kick"][0] == [MIRROR[j] for j in IMPULSE_PRESETS["right_kick"][0]]
+    assert IMPULSE_PRESETS["left_kick"][1] == IMPULSE_PRESETS["right_kick"][1] == (0.0, 0.5, 0.5)
+    # the others as in the table
+    assert IMPULSE_PRESETS["back_flip"] == ([JOINT_INDEX["head"]], (0.0, 0.0, -1.0))
 
 
 @pytest.mark.parametrize("ext", ["bvh", "npz", "glb"])

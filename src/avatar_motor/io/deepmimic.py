@@ -88,8 +88,9 @@ def _fail(src: str, problem: str, fix: str) -> DeepMimicError:
     return DeepMimicError(f"{src}: {problem}. {fix}")
 
 
-def parse_frames(data: bytes, src: str) -> tuple[np.ndarray, str]:
-    """(F, 44) float64 frames and the loop mode, validated."""
+def parse_frames(data: bytes, src: str) -> np.ndarray:
+    """(F, 44) float64 frames, validated. (The file's loop mode is not needed: a clip is imported
+    once, as it is.)"""
     if len(data) > MAX_BYTES:
         raise _fail(src, f"is larger than {MAX_BYTES >> 20} MB", "Split the clip")
     try:
@@ -129,8 +130,7 @@ def parse_frames(data: bytes, src: str) -> tuple[np.ndarray, str]:
             col += 4
         else:
             col += 1
-    loop = doc.get("Loop", "none")
-    return F, loop if isinstance(loop, str) else "none"
+    return F
 
 
 def _uniform(F: np.ndarray) -> tuple[np.ndarray, float]:
@@ -163,7 +163,7 @@ def _uniform(F: np.ndarray) -> tuple[np.ndarray, float]:
 
 def read_deepmimic(data: bytes, name: str = "<bytes>") -> BVH:
     """A DeepMimic humanoid3d clip as a BVH on the humanoid's skeleton (module docstring)."""
-    F, _ = _uniform(parse_frames(data, name)[0])
+    F, dt = _uniform(parse_frames(data, name))
     names = [n for n, _, _ in SKELETON]
     index = {n: i for i, n in enumerate(names)}
     parents = [index[p] if p else -1 for _, p, _ in SKELETON]
@@ -179,7 +179,7 @@ def read_deepmimic(data: bytes, name: str = "<bytes>") -> BVH:
             local[:, index[joint]] = rot.axis_angle_to_matrix(torch.stack((0 * ang, 0 * ang, ang), -1))
             col += 1
     pelvis = F[:, 1:4] + (local[:, 0] @ torch.tensor(PELVIS, dtype=torch.float64)).numpy()
-    b = bvh_from_rotations(names, parents, offsets, pelvis, local, float(F[0, 0]), order="ZYX",
+    b = bvh_from_rotations(names, parents, offsets, pelvis, local, dt, order="ZYX",
                            end_sites={index[n]: np.array(v) for n, v in _END_SITES.items()})
     b.source = name
     return b

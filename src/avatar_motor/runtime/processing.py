@@ -111,7 +111,8 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
     the rotations exporters write. The pelvis location is the root; the rotations pose the body.
     With `follow` (0..1, a number or one per body (B,)) each leg is then bent by two-bone IK so
     that its ankle and foot move that fraction of the way to their processed locations (1: the
-    processed feet exactly; 0: the rotations' feet), and nowhere below the ground. None: no IK.
+    processed feet exactly; 0: the rotations' feet), and nowhere below the ground; then any frame
+    whose lowest joint is below the ground is lifted onto it. None: no IK, no lift.
     With `pin`, a planted foot (foot_contacts of those goals) is also held where it stood in the
     frame before (x0's for the first), as far as it is planted, so it does not slide whichever
     way the rotations move it. Velocities are the backward differences of the new locations, the
@@ -145,6 +146,12 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         local[:, :, [j - 1 for j in knee]] = G_hip.transpose(-1, -2) @ G_knee
         local[:, :, [j - 1 for j in ankle]] = G_knee.transpose(-1, -2) @ G_ankle
     J, _ = forward_kinematics(root, u.root_rot, local, off)
+    if follow is not None:
+        # the rest of the body above the ground too: a rolling or falling body rests on its back or
+        # head, it does not sink (the legs are above it already); lifted per frame, pose unchanged
+        lift = (-J[..., 1].amin(-1)).clamp(min=0.0)  # (B, N)
+        root = root + torch.stack((torch.zeros_like(lift), lift, torch.zeros_like(lift)), -1)
+        J = J + torch.stack((torch.zeros_like(lift), lift, torch.zeros_like(lift)), -1)[:, :, None]
     return _pack_moving(x0, root, u.root_rot, local, J)
 
 
