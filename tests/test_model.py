@@ -186,6 +186,23 @@ def test_warm_start_takes_the_weights_and_checks_the_architecture(tmp_path, fixt
                      model=DenoiserConfig(width=32, depth=1, heads=2, ff=64)), progress=False)
 
 
+def test_stop_at_ends_a_run_early_on_the_planned_schedule_and_init_stats_keeps_the_init_normalisation(tmp_path, fixture_cache):
+    from avatar_motor.data.dataset import SegmentConfig
+    from avatar_motor.train.trainer import Trainer
+    full = Trainer(_cfg(tmp_path / "a", fixture_cache, warmup=1, lr_final_ratio=0.1), progress=False)
+    stopped = Trainer(_cfg(tmp_path / "b", fixture_cache, warmup=1, lr_final_ratio=0.1, stop_at=4), progress=False)
+    h_full, h_stop = full.run(), stopped.run()
+    assert stopped.step == 4 and [m["loss"] for m in h_stop] == pytest.approx([m["loss"] for m in h_full[:4]], rel=1e-6)
+    assert stopped.lr_at(3) == full.lr_at(3) > full.lr_at(5)  # the 6-step cosine, not a 4-step one
+    # continuing on other data with the init's normalisation (not the new data's)
+    init = str(tmp_path / "a" / "checkpoint")
+    kept = Trainer(_cfg(tmp_path / "c", fixture_cache, init=init, init_stats=True,
+                        segment=SegmentConfig(split="all", shape_augment=2.0)), progress=False)
+    assert torch.equal(kept.norm.mean, load_checkpoint(init).norm.mean)
+    with pytest.raises(ValueError, match="set init"):
+        Trainer(_cfg(tmp_path / "d", fixture_cache, init_stats=True), progress=False)
+
+
 def test_normalisation_statistics_follow_a_reimported_cache(tmp_path, fixture_cache):
     from avatar_motor.data.cache import MotionCache
     from avatar_motor.data.dataset import SegmentConfig, SegmentDataset, load_or_compute_stats, stats_path

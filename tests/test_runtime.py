@@ -297,6 +297,8 @@ def test_presets_follow_table_a1():
     assert IMPULSE_PRESETS["right_kick"][0] == [JOINT_INDEX[f"right_{j}"] for j in ("knee", "ankle", "foot")]
     assert IMPULSE_PRESETS["left_kick"][0] == [MIRROR[j] for j in IMPULSE_PRESETS["right_kick"][0]]
     assert IMPULSE_PRESETS["left_kick"][1] == IMPULSE_PRESETS["right_kick"][1] == (0.0, 0.5, 0.5)
+    # the roll (retuned): the upper trunk dives with the head, shoulders and elbows
+    assert JOINT_INDEX["spine3"] in IMPULSE_PRESETS["forward_roll"][0] and IMPULSE_PRESETS["forward_roll"][1] == (0.0, -0.5, 0.5)
     # the others as in the table
     assert IMPULSE_PRESETS["back_flip"] == ([JOINT_INDEX["head"]], (0.0, 0.0, -1.0))
 

@@ -41,6 +41,7 @@ class TrainConfig:
     lr: float = 1e-4
     warmup: int = 0  # linear warm-up steps
     lr_final_ratio: float = 1.0  # cosine decay to lr * ratio at `steps` (1.0 = constant, as PRIMAL)
+    stop_at: int = 0  # end the run at this step, its schedule still planned for `steps` (0: at `steps`)
     weight_decay: float = 0.0
     ema_decay: float = 0.999
     ema_start: int = 500  # steps before the EMA starts tracking (PRIMAL starts after 5 % of training)
@@ -235,7 +236,7 @@ class Trainer:
         from tqdm import tqdm
 
         cfg = self.cfg
-        end = steps if steps is not None else cfg.steps
+        end = steps if steps is not None else (cfg.stop_at or cfg.steps)
         self.out.mkdir(parents=True, exist_ok=True)
         if self.rank == 0:
             (self.out / "config.json").write_text(json.dumps(_jsonable(asdict(cfg)), indent=1))
