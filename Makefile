@@ -37,13 +37,13 @@ clean:
 
 # The shipped model family, rebuilt in dependency order: the motion data, the base (three stages),
 # its one-step EMDM sampler, then the adaptors (actions, styles, reaching), each shipped into
-# models/ as float16 with the fingerprint of the base it was trained on. About 8.5 h on 2 CPU
-# cores (base 3.5 + 1 h, EMDM 1.1 h, adaptors 3 x 0.5 h, evaluations); needs ../shared. Starts
+# models/ as float16 with the fingerprint of the base it was trained on. About 9 h on 2 CPU
+# cores (base 3.5 h + DeepMimic stages 1.3 h, EMDM 1.1 h, adaptors 3 x 0.5 h, evaluations); needs ../shared. Starts
 # afresh (the runs below are deleted) unless RESUME=1, which continues each interrupted job. A
 # shipped folder keeps its card.md: bring its figures up to date from runs/evals/.
 SHARED ?= ../shared/data/bandai-namco
 PYBULLET ?= pybullet==3.2.7
-FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach
+FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach
 AM := $(BIN)/avatar-motor
 
 data: install
@@ -57,7 +57,8 @@ models: data
 	$(AM) train --config configs/base.json
 	$(AM) train --config configs/base-continue.json
 	$(AM) train --config configs/base-deepmimic.json
-	$(AM) ship runs/base-deepmimic/checkpoint models/primal-bandai
+	$(AM) train --config configs/base-deepmimic-2.json
+	$(AM) ship runs/base-deepmimic-2/checkpoint models/primal-bandai
 	$(AM) distill --config configs/emdm.json
 	$(AM) ship runs/emdm/checkpoint models/primal-bandai-emdm --steps 1
 	$(AM) adapt --config configs/actions.json
