@@ -608,3 +608,20 @@ def test_a_broken_model_is_never_streamed_the_guard_stands_the_avatar_up(tmp_pat
         bad = seg.clone()
         edit(bad)
         assert why in physical_faults(x0, bad, off)[0]
+
+
+def test_a_kick_is_counted_only_while_standing():
+    """eval impulses' kick detector: the ankle above the knee with the pelvis up and the trunk
+    upright; the same leg raised by a body lying on its back is no kick."""
+    from avatar_motor.body.skeleton import JOINT_INDEX
+    from avatar_motor.eval.control import impulse_success
+    X = standing_state()[None, None].repeat(1, 45, 1)
+    J = X[..., SLICES["joints"]].view(1, 45, 22, 3)
+    ank, kn = JOINT_INDEX["right_ankle"], JOINT_INDEX["right_knee"]
+    J[:, 20, ank, 1] = J[:, 20, kn, 1] + 0.1  # the foot kicked up in one frame
+    assert impulse_success("right_kick", X).item() and not impulse_success("left_kick", X).item()
+    lying = X.clone()
+    Jl = lying[..., SLICES["joints"]].view(1, 45, 22, 3)
+    Jl[..., 1] = Jl[..., 1] * 0.2 + 0.1  # everything near the ground: pelvis at about 0.3 m
+    Jl[:, 20, ank, 1] = Jl[:, 20, kn, 1] + 0.1
+    assert not impulse_success("right_kick", lying).item()

@@ -33,9 +33,10 @@ def _joints(*names: str) -> list[int]:
 
 # PRIMAL supplementary Table A1, body-centric (X left, Y up, Z forward). The table's velocities
 # are per-frame displacements (PRIMAL trains on them, use_metric_velocity=false): x 30 fps = m/s.
-# Retuned at that scale on a base that learnt DeepMimic's clips (eval impulses, 45 states; model
-# card): the kicks raise the foot as well (the table's knee and ankle pushed only forward read as
-# a stride: the avatar ran off, 0-6 % kicks by the detector; 62 % with the foot up and forward).
+# Retuned at that scale on a base that learnt DeepMimic's clips (eval impulses, 45 states;
+# docs/deepmimic.md): the kicks raise the foot as well (the table's knee and ankle pushed only forward read as
+# a stride: the avatar ran off, 0-6 % kicks; with the foot up and forward too, 49-64 % upright
+# kicks; pushed harder up, (0, 0.75, 0.5), the avatar is thrown over instead).
 IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
     "left_kick": (_joints("left_knee", "left_ankle", "left_foot"), (0.0, 0.5, 0.5)),
     "right_kick": (_joints("right_knee", "right_ankle", "right_foot"), (0.0, 0.5, 0.5)),
