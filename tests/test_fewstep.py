@@ -271,3 +271,16 @@ def test_the_shipped_few_step_model_is_bound_to_its_base_and_streams_one_body_de
     assert float(body_mismatch(X.double(), rest_offsets(torch.zeros(2, 6), torch.float64)[:, None]).max()) < 1e-3
     assert float(X[..., 135:201].reshape(2, -1, 22, 3)[..., 1].min()) > -0.02  # nothing under the ground
     assert float((X[0, -1, :3] - X[0, 0, :3]).norm()) > 0.5  # the steered one walks
+
+
+def test_a_few_step_model_away_from_its_base_runs_without_adaptors(tmp_path):
+    """The default adaptors are looked up beside the model's base; a copy without its base still
+    generates, and only an adaptor asked for by name needs the base (named in the error)."""
+    import shutil
+    from avatar_motor.cli import FEW_STEP_MODEL, main
+    if not (FEW_STEP_MODEL / "config.json").exists():
+        pytest.skip("no shipped few-step model")
+    shutil.copytree(FEW_STEP_MODEL, tmp_path / "alone")
+    assert main(["generate", "--model", str(tmp_path / "alone"), "--seconds", "0.5", "--out", str(tmp_path / "a.bvh")]) == 0
+    assert main(["generate", "--model", str(tmp_path / "alone"), "--seconds", "0.5", "--adaptor", str(tmp_path / "nope"),
+                 "--out", str(tmp_path / "b.bvh")]) == 2

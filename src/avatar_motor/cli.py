@@ -221,13 +221,20 @@ def _load_adaptors(a, motor) -> list:
     """The --adaptor folders (repeatable), loaded on the model's base; none given: the adaptors
     shipped in models/ for that base (`shipped_adaptors`), so the studio has them out of the box."""
     from .model.adaptor import load_adaptor, shipped_adaptors
-    from .model.checkpoint import load_base
-    base = load_base(motor)  # a few-step model runs an adaptor's avatars on its base
-    folders = a.adaptor if a.adaptor is not None else shipped_adaptors(MODELS, base)
+    from .model.checkpoint import CheckpointError, load_base
+    if a.adaptor is None:
+        try:
+            base = load_base(motor)  # a few-step model runs an adaptor's avatars on its base
+        except CheckpointError:  # a few-step model away from its base: no shipped adaptor can run
+            return []
+        folders = shipped_adaptors(MODELS, base)
+    else:
+        folders = [f for f in a.adaptor if f not in ("", "none")]
+        if not folders:
+            return []
+        base = load_base(motor)
     out = []
     for folder in folders:
-        if folder in ("", "none"):
-            continue
         model = load_adaptor(folder, base.net, base.name)
         model.guidance = a.guidance
         out.append(model)
