@@ -294,6 +294,8 @@ def test_several_adaptors_steer_their_own_avatars(tmp_path):
     assert a[ids[2]].adaptor == 0
     crowd.set_label(ids[2], None)
     assert a[ids[2]].adaptor is None and not a[ids[2]].adapted
+    crowd.reset(ids[1])  # every control released, the adaptor with its label
+    assert a[ids[1]].adaptor is None and a[ids[1]].label is None and not a[ids[1]].adapted
     with pytest.raises(ValueError, match=r"unknown label 'dance'; the loaded adaptors know \['bow', 'proud', 'tired', 'wave'\]"):
         crowd.set_label(ids[3], "dance")
 

@@ -480,11 +480,12 @@ def _ship(a) -> int:
     card = (dst / "card.md").read_text() if (dst / "card.md").exists() else None
     if (src / "adaptor.json").exists():
         base = load_checkpoint(a.base)
-        card = card or _stub_card(dst.name, f"adaptor trained on {base.name} (weights {base_fingerprint(base.net)})")
-        ship_adaptor(src, dst, base, card)
-        print(f"{dst}: float16 adaptor on {base.name} ({base_fingerprint(base.net)})")
+        fp = base_fingerprint(base.net)
+        ship_adaptor(src, dst, base, card or _stub_card(dst.name, f"adaptor trained on {base.name} (weights {fp})"))
+        print(f"{dst}: float16 adaptor on {base.name} ({fp})")
         return 0
     m = load_checkpoint(src)
+    fp = base_fingerprint(m.net)  # taken over float16 values: the shipped copy's too
     extra = {"name": dst.name}
     if m.sampler["kind"] != "ddpm":
         s = dict(m.config["sampler"])
@@ -493,8 +494,8 @@ def _ship(a) -> int:
         if base_fingerprint(load_checkpoint(a.base).net) != s["base_fingerprint"]:
             raise ValueError(f"{src} was not trained from {a.base}'s weights; rebuild it on that base (make models)")
         extra["sampler"] = s
-    ship_checkpoint(src, dst, card or _stub_card(dst.name, f"{m.sampler['kind']} model, weights {base_fingerprint(m.net)}"), extra)
-    print(f"{dst}: float16 {m.sampler['kind']} model, fingerprint {base_fingerprint(load_checkpoint(dst).net)}")
+    ship_checkpoint(src, dst, card or _stub_card(dst.name, f"{m.sampler['kind']} model, weights {fp}"), extra)
+    print(f"{dst}: float16 {m.sampler['kind']} model, fingerprint {fp}")
     return 0
 
 

@@ -138,8 +138,9 @@ class AvatarState:
 
     @property
     def adapted(self) -> bool:
-        """An adaptor steers it: a label or a target is set, at a scale above 0 (0 is the base model)."""
-        return self.adaptor is not None and (self.label is not None or self.target is not None) and self.control_scale > 0
+        """An adaptor steers it (set with its label or target, released with it), at a scale above 0
+        (0 is the base model)."""
+        return self.adaptor is not None and self.control_scale > 0
 
     @property
     def reaching(self) -> bool:
@@ -274,7 +275,7 @@ class Crowd:
         push."""
         a = self._get(i)
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
-        a.v_goal = a.facing_goal = a.pending_velocity = a.label = a.target = None
+        a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
         a.near_target = False
         self.interrupt(i)
 

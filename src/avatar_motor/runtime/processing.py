@@ -150,8 +150,8 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         # the rest of the body above the ground too: a rolling or falling body rests on its back or
         # head, it does not sink (the legs are above it already); lifted per frame, pose unchanged
         lift = (-J[..., 1].amin(-1)).clamp(min=0.0)  # (B, N)
-        root = root + torch.stack((torch.zeros_like(lift), lift, torch.zeros_like(lift)), -1)
-        J = J + torch.stack((torch.zeros_like(lift), lift, torch.zeros_like(lift)), -1)[:, :, None]
+        up = torch.stack((torch.zeros_like(lift), lift, torch.zeros_like(lift)), -1)  # (B, N, 3)
+        root, J = root + up, J + up[:, :, None]
     return _pack_moving(x0, root, u.root_rot, local, J)
 
 
