@@ -1,0 +1,84 @@
+"""Range of motion from data (DROP §4 E_RoM, §7): each joint's local rotation must stay near the
+rotations real people take. DROP projects through VPoser's latent; we have no such model, so the
+set is the data's own: per joint, K anchor rotations spread over what the training motion holds
+(farthest-point sampling), and a radius that keeps 99 % of held-out real rotations inside. A
+rotation farther than the radius from every anchor is turned toward the nearest anchor until it is
+on the boundary: swing and twist limits together, shaped like the data, not like a cone."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from ..body import rotations as rot
+
+ANCHORS = 256  # per joint
+COVER = 0.99  # share of held-out real rotations the set contains
+
+
+@dataclass
+class RangeOfMotion:
+    anchors: torch.Tensor  # (21, K, 4) unit quaternions w, x, y, z (w >= 0)
+    radius: torch.Tensor  # (21,) rad
+
+
+def _angles(q: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
+    """Angles (..., 21, K) between rotations q (..., 21, 4) and each joint's anchors (21, K, 4)."""
+    dot = (q[..., None, :] * anchors).sum(-1).abs().clamp(max=1.0)
+    return 2 * torch.acos(dot)
+
+
+def fit(local_rot: torch.Tensor, held_out: torch.Tensor, anchors: int = ANCHORS, cover: float = COVER,
+        generator: torch.Generator | None = None, pool: int = 20000) -> RangeOfMotion:
+    """Limits from real local rotations (N, 21, 3, 3) (training frames) checked on held_out
+    (M, 21, 3, 3): anchors by farthest-point sampling among at most `pool` training frames, the
+    radius the `cover` quantile of the held-out frames' distances to their nearest anchor."""
+    q = rot.matrix_to_quat(local_rot.to(torch.float64))
+    if len(q) > pool:
+        q = q[torch.randperm(len(q), generator=generator)[:pool]]
+    J = q.shape[1]
+    chosen = torch.zeros(J, anchors, 4, dtype=torch.float64)
+    chosen[:, 0] = q[0]
+    nearest = _angles(q, chosen[:, :1]).squeeze(-1)  # (N, 21) distance to the chosen set
+    for k in range(1, anchors):
+        far = nearest.argmax(0)  # per joint, the rotation farthest from the set so far
+        chosen[:, k] = q[far, torch.arange(J)]
+        nearest = torch.minimum(nearest, _angles(q, chosen[:, k:k + 1]).squeeze(-1))
+    d = _angles(rot.matrix_to_quat(held_out.to(torch.float64)), chosen).amin(-1)  # (M, 21)
+    return RangeOfMotion(chosen, torch.quantile(d, cover, dim=0))
+
+
+def project(local_rot: torch.Tensor, rom: RangeOfMotion) -> torch.Tensor:
+    """Local rotations (..., 21, 3, 3) moved into the range: one farther than its joint's radius
+    from every anchor is slerped toward the nearest anchor onto the radius; others unchanged."""
+    q = rot.matrix_to_quat(local_rot.to(torch.float64))
+    ang = _angles(q, rom.anchors.to(q.dtype))
+    d, k = ang.min(-1)  # (..., 21)
+    a = rom.anchors.to(q.dtype)[torch.arange(q.shape[-2]), k]  # (..., 21, 4) nearest anchors
+    a = torch.where((a * q).sum(-1, keepdim=True) < 0, -a, a)  # same hemisphere as q
+    radius = rom.radius.to(q.dtype)
+    out = rot.quat_slerp(a, q, (radius / d.clamp_min(1e-12)).clamp(max=1.0))  # from the anchor, radius along
+    return torch.where((d > radius)[..., None, None], rot.quat_to_matrix(out), local_rot.to(torch.float64))
+
+
+def save(rom: RangeOfMotion, path: str | Path) -> None:
+    save_file({"anchors": rom.anchors.to(torch.float32).contiguous(), "radius": rom.radius.to(torch.float32).contiguous()},
+              str(path))
+
+
+def load(path: str | Path) -> RangeOfMotion:
+    try:
+        t = load_file(str(path))
+        rom = RangeOfMotion(t["anchors"].to(torch.float64), t["radius"].to(torch.float64))
+    except Exception as e:  # noqa: BLE001 - any unreadable file gets the same clear message
+        raise ValueError(f"{path}: not a readable range-of-motion file ({e}); rebuild it from motion "
+                         "data (physics.limits.fit, then save)") from None
+    if rom.anchors.ndim != 3 or rom.anchors.shape[0] != 21 or rom.anchors.shape[2] != 4 or rom.radius.shape != (21,):
+        raise ValueError(f"{path}: range of motion has shapes {tuple(rom.anchors.shape)} / {tuple(rom.radius.shape)}, "
+                         "expected (21, K, 4) / (21,)")
+    if not (torch.isfinite(rom.anchors).all() and torch.isfinite(rom.radius).all() and (rom.radius >= 0).all()):
+        raise ValueError(f"{path}: range of motion holds non-finite or negative values; rebuild it")
+    rom.anchors = rot.normalize(rom.anchors)
+    return rom

@@ -1,0 +1,256 @@
+"""DROP's minimal physics body (Jiang et al. 2023, §4-5): particles at the 22 joints, stepped by an
+implicit-Euler variational integrator solved with projective dynamics.
+
+    x_{t+1} = argmin_x 1/(2h^2) (x - y)^T M (x - y) + sum_i w_i/2 |A_i x - p_i|^2,
+    y = x_t + h v_t + h^2 M^-1 f_t + h^2 g                                          (DROP Eq. 1-4)
+
+Local step: each energy projects the current iterate onto its set (p_i). Global step: the
+quadratic in x is solved with every p_i fixed. The energies here:
+- momentum (above), M the joints' anthropometric masses;
+- rigidity: every bone's vector x_j - x_parent pulled to its rest length along its current
+  direction (the fast mass-spring form of DROP Eq. 5);
+- ground contact: a joint below the height at which it rests on the ground is projected up to
+  it, at its horizontal place of the frame before (static friction, DROP Eq. 6);
+- range of motion: the body's pose (rotations from the particles, `pose_from_particles`) with
+  each joint's rotation moved into the data's range (physics/limits.py), back through FK (E_RoM);
+- kinematic: the nearest of K next frames sampled from the motion model (DROP Eq. 10): the model
+  is the body's control. The candidates are the caller's (this room samples no network).
+
+Every energy keeps the same weight in every step, and a constraint that holds projects the
+iterate onto itself (Bouaziz et al. 2014): so the system matrix depends only on the body, and
+is factored once per body (Cholesky) and reused by every iteration of every step. All energies
+are isotropic in x, y and z, so the 66 x 66 system is three 22 x 22 systems sharing one factor.
+
+Weights are stiffnesses relative to momentum: an energy of weight w on joint j adds w m_j / h^2
+to the matrix (rigidity: w times the lighter end's mass), so the body's response does not depend
+on its total mass; only external forces (N, N s) do.
+
+Pure functions on batched tensors (B bodies); the runtime holds the state and the candidates."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..body import rotations as rot
+from ..body.motion_state import FPS
+from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, NUM_JOINTS, PARENTS, forward_kinematics
+from . import limits
+
+BONES = torch.tensor([(PARENTS[j], j) for j in range(1, NUM_JOINTS)])  # (21, 2): parent, child
+
+# Share of the body's mass lumped at each joint: de Leva's (1996) segment masses (male adult,
+# % of body mass: head+neck 6.94, trunk 43.46, upper arm 2.71, forearm 1.62, hand 0.61, thigh
+# 14.16, shank 4.33, foot 1.37), each segment's split evenly between the joints it spans, the
+# hand lumped at the wrist, the trunk spread over pelvis, spine and collars.
+_SEGMENTS = [  # (mass %, joints it is lumped at)
+    (11.17, ("pelvis",)), (16.33, ("spine1", "spine2")), (13.96, ("spine3",)),
+    (1.0, ("left_collar",)), (1.0, ("right_collar",)), (6.94, ("neck", "head")),
+]
+for _side in ("left", "right"):
+    _SEGMENTS += [(14.16, (f"{_side}_hip", f"{_side}_knee")), (4.33, (f"{_side}_knee", f"{_side}_ankle")),
+                  (1.37, (f"{_side}_ankle", f"{_side}_foot")), (2.71, (f"{_side}_shoulder", f"{_side}_elbow")),
+                  (1.62, (f"{_side}_elbow", f"{_side}_wrist")), (0.61, (f"{_side}_wrist",))]
+
+
+def _mass_shares() -> torch.Tensor:
+    m = torch.zeros(NUM_JOINTS, dtype=torch.float64)
+    for pct, joints in _SEGMENTS:
+        for name in joints:
+            m[JOINT_INDEX[name]] += pct / len(joints)
+    return m / m.sum()
+
+
+MASS_SHARE = _mass_shares()  # (22,), sums to 1
+
+# Radius (m) of each joint's collision sphere (the studio draws the same spheres); a joint rests
+# on the ground when its centre is this high. A foot joint stands at FOOT_CLEARANCE (the data's).
+COLLISION_RADIUS = torch.tensor([0.09, 0.075, 0.075, 0.08, 0.06, 0.06, 0.08, 0.045, 0.045, 0.09, 0.035, 0.035,
+                                 0.05, 0.05, 0.05, 0.11, 0.05, 0.05, 0.04, 0.04, 0.035, 0.035], dtype=torch.float64)
+REST_HEIGHT = COLLISION_RADIUS.clone()
+REST_HEIGHT[[JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]] = FOOT_CLEARANCE
+
+
+@dataclass
+class PhysicsConfig:
+    mass: float = 70.0  # kg, the whole body
+    iterations: int = 3  # local/global iterations per step (DROP §7)
+    rigidity: float = 50.0  # bone springs
+    contact: float = 3.0  # ground (DROP w2)
+    range_of_motion: float = 3.0  # joint limits (DROP w3)
+    kinematic: float = 3.0  # the motion model's nearest candidate (DROP w_kin)
+    gravity: float = 9.81  # m/s^2, along -y
+
+    def validate(self) -> None:
+        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "gravity"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v >= 0 and v == v and v != float("inf")):
+                raise ValueError(f"physics {name} must be a finite number >= 0, got {v!r}")
+        if self.mass <= 0:
+            raise ValueError(f"physics mass must be > 0 kg, got {self.mass!r}")
+        if not (isinstance(self.iterations, int) and 1 <= self.iterations <= 100):
+            raise ValueError(f"physics iterations must be an integer 1..100, got {self.iterations!r}")
+
+
+@dataclass
+class Bodies:
+    """What the solver keeps per body: bones, masses, rest lengths and the factored system."""
+    offsets: torch.Tensor  # (B, 22, 3) the body's bones
+    masses: torch.Tensor  # (B, 22) kg
+    rest: torch.Tensor  # (B, 21) m
+    factor: torch.Tensor  # (B, 22, 22) lower Cholesky factor of the per-axis system matrix
+    matrix: torch.Tensor  # (B, 22, 22) the system matrix itself (tests compare against it)
+
+
+H = 1.0 / FPS  # the time step: one frame of the motion model
+
+
+def _incidence(dtype) -> torch.Tensor:
+    """(21, 22): row b is +1 at bone b's child and -1 at its parent, so G x = the bone vectors."""
+    G = torch.zeros(NUM_JOINTS - 1, NUM_JOINTS, dtype=dtype)
+    G[torch.arange(NUM_JOINTS - 1), BONES[:, 1]] = 1.0
+    G[torch.arange(NUM_JOINTS - 1), BONES[:, 0]] = -1.0
+    return G
+
+
+def _bone_weights(masses: torch.Tensor, cfg: PhysicsConfig) -> torch.Tensor:
+    """(B, 21) each bone spring's weight: rigidity x its lighter end's mass / h^2."""
+    return cfg.rigidity * torch.minimum(masses[:, BONES[:, 0]], masses[:, BONES[:, 1]]) / H**2
+
+
+def _diagonal(masses: torch.Tensor, cfg: PhysicsConfig) -> torch.Tensor:
+    """(B, 22) the diagonal terms: momentum, ground, range-of-motion and kinematic energies,
+    mass-weighted."""
+    return masses * (1.0 + cfg.contact + cfg.range_of_motion + cfg.kinematic) / H**2
+
+
+def prepare(offsets: torch.Tensor, cfg: PhysicsConfig | None = None) -> Bodies:
+    """The solver's constants for bodies with bones `offsets` (B, 22, 3): masses, rest lengths,
+    and the system matrix M/h^2 + sum_i w_i A_i^T A_i per axis, factored once."""
+    cfg = cfg or PhysicsConfig()
+    cfg.validate()
+    offsets = offsets.to(torch.float64)
+    B = len(offsets)
+    masses = (cfg.mass * MASS_SHARE).expand(B, NUM_JOINTS).clone()
+    rest = offsets[:, 1:].norm(dim=-1)
+    G = _incidence(torch.float64)
+    A = torch.diag_embed(_diagonal(masses, cfg)) + G.T @ (_bone_weights(masses, cfg)[:, :, None] * G)
+    return Bodies(offsets, masses, rest, torch.linalg.cholesky(A), A)
+
+
+def project_bones(x: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+    """(B, 21, 3): each bone's current vector (child - parent of x (B, 22, 3)) scaled to its rest
+    length (B, 21): the nearest rigid bone. A collapsed bone keeps its length along +y."""
+    d = x[:, BONES[:, 1]] - x[:, BONES[:, 0]]
+    n = d.norm(dim=-1, keepdim=True)
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=x.dtype)
+    return torch.where(n > 1e-9, d / n.clamp_min(1e-12), up) * rest[..., None]
+
+
+def project_ground(x: torch.Tensor, x_prev: torch.Tensor, ground: float = 0.0) -> torch.Tensor:
+    """(B, 22, 3): a joint of x below its resting height (REST_HEIGHT above `ground`) lifted onto it
+    at its horizontal place in x_prev, the frame before (static friction); any other joint is
+    itself (no energy)."""
+    h = ground + REST_HEIGHT.to(x.dtype)
+    below = x[..., 1] < h
+    p = torch.stack((x_prev[..., 0], h.expand_as(x[..., 1]), x_prev[..., 2]), -1)
+    return torch.where(below[..., None], p, x)
+
+
+@dataclass
+class Candidates:
+    """K next frames per body sampled from the motion model, as one body each (world frame)."""
+    joints: torch.Tensor  # (B, K, 22, 3)
+    root_rot: torch.Tensor  # (B, K, 3, 3)
+    local_rot: torch.Tensor  # (B, K, 21, 3, 3)
+
+
+def project_prior(x: torch.Tensor, candidates: torch.Tensor, masses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The candidate next frames (B, K, 22, 3) nearest to x (B, 22, 3) in the mass-weighted
+    distance the energy uses; returns it (B, 22, 3) and its index (B,)."""
+    d = (((candidates - x[:, None]) ** 2).sum(-1) * masses[:, None]).sum(-1)  # (B, K)
+    k = d.argmin(1)
+    return candidates[torch.arange(len(x)), k], k
+
+
+def project_range(x: torch.Tensor, cands: Candidates, k: torch.Tensor, offsets: torch.Tensor, rom) -> torch.Tensor:
+    """(B, 22, 3): the body of particles x posed with candidate k's twist (pose_from_particles),
+    each joint's rotation moved into the range of motion `rom`, back through FK from x's pelvis."""
+    rows = torch.arange(len(x))
+    _, root_rot, local, _ = pose_from_particles(x, cands.root_rot[rows, k], cands.local_rot[rows, k], offsets)
+    J, _ = forward_kinematics(x[:, 0], root_rot, limits.project(local, rom), offsets.to(x.dtype))
+    return J
+
+
+def inertial_target(x: torch.Tensor, v: torch.Tensor, forces: torch.Tensor | None, masses: torch.Tensor,
+                    cfg: PhysicsConfig) -> torch.Tensor:
+    """y = x + h v + h^2 M^-1 f + h^2 g: where the joints go without internal energies.
+    forces (B, 22, 3) N, or None."""
+    y = x + H * v
+    y[..., 1] -= H**2 * cfg.gravity
+    if forces is not None:
+        y = y + H**2 * forces / masses[..., None]
+    return y
+
+
+def solve_global(bodies: Bodies, y: torch.Tensor, bones: torch.Tensor, ground: torch.Tensor, ranged: torch.Tensor,
+                 kin: torch.Tensor, cfg: PhysicsConfig) -> torch.Tensor:
+    """The global step: the minimiser of the quadratic with every projection fixed (DROP Eq. 4),
+    by the body's factor. y, ground, ranged, kin: (B, 22, 3); bones: (B, 21, 3)."""
+    m = bodies.masses[..., None] / H**2
+    rhs = m * (y + cfg.contact * ground + cfg.range_of_motion * ranged + cfg.kinematic * kin)
+    rhs = rhs + _incidence(y.dtype).T @ (_bone_weights(bodies.masses, cfg)[..., None] * bones)
+    return torch.cholesky_solve(rhs, bodies.factor)
+
+
+def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, forces: torch.Tensor | None = None,
+         cfg: PhysicsConfig | None = None, rom=None, ground: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One frame (DROP Algorithm 1 without the correction): joints x (B, 22, 3) m and velocities
+    v (B, 22, 3) m/s at t, the motion model's candidate next frames, external forces (B, 22, 3) N
+    held over the frame, the range of motion (None: that energy holds everywhere). Starts from the
+    inertial target, then `iterations` local/global rounds. Returns x_{t+1},
+    v_{t+1} = (x_{t+1} - x_t) / h and the index (B,) of the candidate the kinematic energy pulled
+    toward last (its rotations give the body its twist)."""
+    cfg = cfg or PhysicsConfig()
+    x, v, cj = x.to(torch.float64), v.to(torch.float64), cands.joints.to(torch.float64)
+    forces = None if forces is None else forces.to(torch.float64)
+    y = inertial_target(x, v, forces, bodies.masses, cfg)
+    # from the inertial target: an energy whose constraint holds projects the iterate onto itself,
+    # which pulls toward the start until the iterations converge, so the start must be neutral
+    # (from the nearest candidate, a body with no prior energy still followed the prior)
+    it, k = y, None
+    for _ in range(cfg.iterations):
+        kin, k = project_prior(it, cj, bodies.masses)
+        ranged = it if rom is None or cfg.range_of_motion == 0 else project_range(it, cands, k, bodies.offsets, rom)
+        it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, ground), ranged, kin, cfg)
+    return it, (it - x) / H, k
+
+
+def pose_from_particles(x: torch.Tensor, sample_root: torch.Tensor, sample_local: torch.Tensor,
+                        offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The one body of solved particles x (B, 22, 3) (DROP §7): each joint's rotation is the
+    chosen sample's (root (B, 3, 3), local (B, 21, 3, 3)) turned by the swing that lays its bones
+    along the solved ones: the smallest rotation for a joint with one child (so the sample's twist
+    about the bone stays), the best fit (Kabsch) for the pelvis and the upper spine, which carry
+    several; a leaf (head, wrists, feet) keeps the sample's local rotation. Returns the root
+    position (the solved pelvis), root rotation, local rotations and FK joints on `offsets`."""
+    dt = x.dtype
+    off = offsets.to(dt)
+    sample_root, sample_local = sample_root.to(dt), sample_local.to(dt)
+    _, G_s = forward_kinematics(x[:, 0], sample_root, sample_local, off)  # the sample's global rotations
+    G = [None] * NUM_JOINTS
+    for j in range(NUM_JOINTS):  # parents first (SMPL order is breadth-first)
+        kids = [c for c in range(NUM_JOINTS) if PARENTS[c] == j]
+        # the joint's frame as the sample has it, carried by its parent's new rotation
+        Gj = G_s[:, j] if j == 0 else G[PARENTS[j]] @ sample_local[:, j - 1]
+        if kids:
+            src = torch.einsum("bij,bkj->bki", Gj, off[:, kids])  # bones the sample's frame lays
+            dst = x[:, kids] - x[:, j:j + 1]  # where the solver put them
+            R = rot.rotation_between(src[:, 0], dst[:, 0]) if len(kids) == 1 else rot.kabsch(src, dst)
+            Gj = R @ Gj
+        G[j] = Gj
+    Gs = torch.stack(G, 1)
+    local = Gs[:, PARENTS[1:]].transpose(-1, -2) @ Gs[:, 1:]
+    J, _ = forward_kinematics(x[:, 0], Gs[:, 0], local, off)
+    return x[:, 0], Gs[:, 0], local, J
+

@@ -1,0 +1,293 @@
+"""The physics room (DROP's projective-dynamics body): each energy's projection, the factored
+solve against a dense one, momentum without energies, gravity, standing on the ground, a push's
+response, and the one body made of solved particles."""
+import pytest
+import torch
+
+from avatar_motor.body import rotations as rot
+from avatar_motor.body.motion_state import unpack
+from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
+from avatar_motor.physics.solver import (BONES, H, MASS_SHARE, REST_HEIGHT, Candidates, PhysicsConfig, inertial_target,
+                                         pose_from_particles, prepare, project_bones, project_ground, project_prior,
+                                         solve_global, step)
+from avatar_motor.runtime.crowd import standing_state
+
+
+def _standing(B: int = 1):
+    x = standing_state().to(torch.float64)
+    u = unpack(x[None].expand(B, -1))
+    return u.joints.clone(), u.root_rot, u.local_rot, rest_offsets(None, torch.float64).expand(B, NUM_JOINTS, 3)
+
+
+def _held(x, root, local) -> Candidates:
+    """One candidate per body: the given pose (the prior wants it to stay)."""
+    return Candidates(x[:, None], root[:, None], local[:, None])
+
+
+def test_masses_are_a_body():
+    assert abs(float(MASS_SHARE.sum()) - 1.0) < 1e-12 and bool((MASS_SHARE > 0).all())
+    for name in ("hip", "knee", "ankle", "foot", "shoulder", "elbow", "wrist", "collar"):
+        assert MASS_SHARE[JOINT_INDEX[f"left_{name}"]] == MASS_SHARE[JOINT_INDEX[f"right_{name}"]]
+    legs = sum(float(MASS_SHARE[JOINT_INDEX[f"{s}_{n}"]]) for s in ("left", "right") for n in ("hip", "knee", "ankle", "foot"))
+    assert 0.3 < legs < 0.4  # thighs, shanks and feet: about a third of the body
+
+
+def test_config_errors_name_the_field():
+    for bad, word in ((dict(mass=0.0), "mass"), (dict(iterations=0), "iterations"), (dict(contact=-1.0), "contact"),
+                      (dict(kinematic=float("nan")), "kinematic")):
+        with pytest.raises(ValueError, match=word):
+            prepare(rest_offsets()[None], PhysicsConfig(**bad))
+
+
+def test_projections():
+    x, _, _, off = _standing(2)
+    rest = off[:, 1:].norm(dim=-1)
+    stretched = x * 1.3
+    d = project_bones(stretched, rest)
+    assert torch.allclose(d.norm(dim=-1), rest)
+    v = stretched[:, BONES[:, 1]] - stretched[:, BONES[:, 0]]
+    assert torch.allclose(rot.normalize(d), rot.normalize(v))  # directions kept
+    # ground: the sunk joint goes up to its resting height where it stood the frame before
+    prev = x.clone()
+    sunk = x.clone()
+    f = JOINT_INDEX["left_foot"]
+    sunk[0, f] += torch.tensor([0.05, -0.1, 0.03], dtype=torch.float64)
+    p = project_ground(sunk, prev)
+    assert torch.allclose(p[0, f], torch.tensor([prev[0, f, 0], REST_HEIGHT[f], prev[0, f, 2]], dtype=torch.float64))
+    above = sunk[..., 1] > REST_HEIGHT + 1e-9
+    assert not above[0, f] and int(above.sum()) >= 2 * NUM_JOINTS - 4  # the feet stand at their height
+    assert torch.equal(p[above], sunk[above])  # above the ground: no energy
+    # the prior: the nearest candidate, in the energy's mass-weighted distance
+    cands = torch.stack((x + 0.3, x + 0.01, x - 0.2), 1)
+    near, k = project_prior(x, cands, prepare(off).masses)
+    assert k.tolist() == [1, 1] and torch.equal(near, cands[:, 1])
+
+
+def test_factored_solve_equals_a_dense_66_by_66_solve():
+    torch.manual_seed(0)
+    x, _, _, off = _standing(3)
+    cfg = PhysicsConfig(rigidity=20.0, contact=2.0, range_of_motion=1.5, kinematic=4.0)
+    b = prepare(off, cfg)
+    assert torch.allclose(b.factor @ b.factor.transpose(-1, -2), b.matrix)
+    y, kin, ground, ranged = (x + 0.05 * torch.randn_like(x) for _ in range(4))
+    bones = project_bones(x + 0.02 * torch.randn_like(x), b.rest)
+    got = solve_global(b, y, bones, ground, ranged, kin, cfg)
+    for i in range(3):  # the energy written out over all 66 coordinates, minimised densely
+        m = b.masses[i].repeat_interleave(3) / H**2  # x laid out joint-major: (x0, y0, z0, x1, ...)
+        A = torch.diag(m * (1 + cfg.contact + cfg.range_of_motion + cfg.kinematic))
+        rhs = m * (y[i].flatten() + cfg.contact * ground[i].flatten() + cfg.range_of_motion * ranged[i].flatten()
+                   + cfg.kinematic * kin[i].flatten())
+        for n, (p, c) in enumerate(BONES.tolist()):
+            w = cfg.rigidity * min(float(b.masses[i, p]), float(b.masses[i, c])) / H**2
+            S = torch.zeros(3, 66, dtype=torch.float64)
+            S[:, 3 * c:3 * c + 3] = torch.eye(3)
+            S[:, 3 * p:3 * p + 3] = -torch.eye(3)
+            A += w * S.T @ S
+            rhs += w * S.T @ bones[i, n]
+        dense = torch.linalg.solve(A, rhs).reshape(NUM_JOINTS, 3)
+        assert torch.allclose(got[i], dense, atol=1e-10)
+
+
+def test_momentum_is_conserved_without_forces_and_energies():
+    """Bones only (internal forces), no gravity, ground or prior: the total linear momentum stays."""
+    torch.manual_seed(1)
+    x, root, local, off = _standing(2)
+    cfg = PhysicsConfig(contact=0.0, range_of_motion=0.0, kinematic=0.0, gravity=0.0)
+    b = prepare(off, cfg)
+    v = torch.randn_like(x)
+    p0 = (b.masses[..., None] * v).sum(1)
+    for _ in range(30):
+        x, v, _ = step(b, x, v, _held(x, root, local), cfg=cfg)
+    assert torch.allclose((b.masses[..., None] * v).sum(1), p0, atol=1e-9)
+    # and the bones held their lengths through the tumbling
+    lengths = (x[:, BONES[:, 1]] - x[:, BONES[:, 0]]).norm(dim=-1)
+    assert float((lengths - b.rest).abs().max()) < 0.02
+
+
+def test_free_fall_is_gravity():
+    x, root, local, off = _standing()
+    x = x + torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64)  # high above the ground
+    cfg = PhysicsConfig(contact=0.0, range_of_motion=0.0, kinematic=0.0)
+    b = prepare(off, cfg)
+    v = torch.zeros_like(x)
+    for _ in range(15):
+        x, v, _ = step(b, x, v, _held(x, root, local), cfg=cfg)
+    assert torch.allclose(v[..., 1], torch.full_like(v[..., 1], -15 * H * cfg.gravity), atol=1e-9)  # implicit Euler
+    assert torch.allclose(v[..., [0, 2]], torch.zeros_like(v[..., [0, 2]]), atol=1e-9)
+
+
+def test_a_body_held_by_its_prior_stands_and_a_push_moves_it_by_its_size():
+    """Candidates = the standing pose: gravity, ground and prior balance, nothing sinks. A force
+    at the pelvis for one frame moves the body its way, farther for a larger push."""
+    x0, root, local, off = _standing()
+    cfg = PhysicsConfig()
+    b = prepare(off, cfg)
+    held = _held(x0, root, local)
+    x, v = x0.clone(), torch.zeros_like(x0)
+    for _ in range(60):
+        x, v, _ = step(b, x, v, held, cfg=cfg)
+    assert float((x - x0).norm(dim=-1).max()) < 0.02
+    assert float((x[..., 1] - REST_HEIGHT).min()) > -0.02  # no joint into the ground
+    moved = []
+    for push in (50.0, 100.0, 200.0):  # N s at the pelvis, forward (+z)
+        f = torch.zeros_like(x0)
+        f[:, 0, 2] = push / H  # the impulse delivered over one frame
+        x, v = x0.clone(), torch.zeros_like(x0)
+        x, v, _ = step(b, x, v, held, forces=f, cfg=cfg)
+        path = [float(x[0, 0, 2] - x0[0, 0, 2])]
+        for _ in range(5):
+            x, v, _ = step(b, x, v, held, cfg=cfg)
+            path.append(float(x[0, 0, 2] - x0[0, 0, 2]))
+        moved.append(max(path))
+        # the prior, which wants to stand, takes the pelvis back within a few frames
+        assert path[-1] < 0.5 * max(path)
+    assert 0.03 < moved[0] < moved[1] < moved[2], moved
+
+
+def test_inertial_target():
+    x, _, _, off = _standing()
+    b = prepare(off)
+    v = torch.ones_like(x)
+    f = torch.zeros_like(x)
+    f[0, 3, 0] = 7.0
+    y = inertial_target(x, v, f, b.masses, PhysicsConfig(gravity=10.0))
+    want = x + H * v
+    want[..., 1] -= 10.0 * H**2
+    want[0, 3, 0] += H**2 * 7.0 / b.masses[0, 3]
+    assert torch.allclose(y, want)
+
+
+def test_the_solved_particles_become_one_body_with_the_samples_twist():
+    x, root, local, off = _standing(2)
+    # the sample's own joints: its own rotations come back, and the same joints
+    r_pos, r_rot, r_local, J = pose_from_particles(x, root, local, off)
+    assert torch.allclose(r_rot, root, atol=1e-6) and torch.allclose(r_local, local, atol=1e-6)
+    assert torch.allclose(J, x, atol=1e-6)
+    # particles bent: the left knee raised forward. The body follows the bones and stays rigid
+    y = x.clone()
+    knee, ankle, foot = JOINT_INDEX["left_knee"], JOINT_INDEX["left_ankle"], JOINT_INDEX["left_foot"]
+    hip = JOINT_INDEX["left_hip"]
+    R = rot.axis_angle_to_matrix(torch.tensor([-1.2, 0.0, 0.0], dtype=torch.float64))  # thigh forward and up
+    for j in (knee, ankle, foot):
+        y[:, j] = y[:, hip] + (R @ (x[:, j] - x[:, hip])[..., None])[..., 0]
+    _, r_rot, r_local, J = pose_from_particles(y, root, local, off)
+    J_fk, _ = forward_kinematics(y[:, 0], r_rot, r_local, off)
+    assert torch.allclose(J, J_fk)  # one body: FK of the rotations it returns
+    assert torch.allclose(J, y, atol=1e-6)  # a rigid bend is reached exactly
+    # the twist about the thigh is the sample's: the local rotation differs by a swing only
+    bones = (J[:, 1:] - J[:, PARENTS[1:]]).norm(dim=-1)
+    assert torch.allclose(bones, off[:, 1:].norm(dim=-1))
+
+
+def test_nnls_meets_its_optimality_conditions():
+    import numpy as np
+    from avatar_motor.physics.wrench import nnls
+    rng = np.random.default_rng(0)
+    for m, n in ((6, 8), (6, 40), (10, 4), (3, 3)):
+        A, b = rng.normal(size=(m, n)), rng.normal(size=m)
+        x = nnls(A, b)
+        g = A.T @ (A @ x - b)  # gradient of |Ax - b|^2 / 2
+        assert (x >= 0).all()
+        assert np.allclose(g[x > 0], 0, atol=1e-8) and (g[x == 0] >= -1e-8).all()
+    # a b inside the cone of A's columns is met exactly
+    A = np.abs(rng.normal(size=(6, 12)))
+    c = np.abs(rng.normal(size=12))
+    assert np.linalg.norm(A @ nnls(A, A @ c) - A @ c) < 1e-9
+
+
+def test_root_wrench_metric_and_soft_correction_on_hand_made_cases():
+    """Standing still on both feet: the ground explains everything (metric ~0). Held still in
+    the air: the metric is the body's weight (the prior's "magic" force), and the correction
+    with a large weight lets the body fall as gravity says; a small weight corrects less; below
+    the skip threshold nothing moves."""
+    import numpy as np
+    from avatar_motor.physics.wrench import root_wrench, soft_correction
+    x0, _, _, off = _standing()
+    b = prepare(off)
+    x, m = x0[0].numpy(), b.masses[0].numpy()
+    v = np.zeros_like(x)
+    feet = np.zeros(NUM_JOINTS, dtype=bool)
+    feet[[JOINT_INDEX[n] for n in ("left_foot", "right_foot", "left_ankle", "right_ankle")]] = True
+    g, mu = 9.81, 0.8
+    metric, Fc, _ = root_wrench(x, x, v, m, feet, g, mu)
+    assert metric < 1e-6 * m.sum() * g and abs(Fc[1] - m.sum() * g) < 1e-6  # the ground carries the weight
+    air = x + np.array([0.0, 1.0, 0.0])
+    none = np.zeros(NUM_JOINTS, dtype=bool)
+    metric, _, _ = root_wrench(air, air, v, m, none, g, mu)
+    assert abs(metric - m.sum() * g) < 1e-6
+    full, before, after = soft_correction(air, air, v, m, none, g, mu, weight=1e6, skip_below=0.0)
+    assert abs(before - m.sum() * g) < 1e-6 and after < 1e-3 * before
+    com_drop = float((m[:, None] * (air - full)).sum(0)[1] / m.sum())
+    assert abs(com_drop - g * H**2) < 1e-6  # it falls by g h^2 in the frame, as free fall would
+    part, _, after_part = soft_correction(air, air, v, m, none, g, mu, weight=1e-8, skip_below=0.0)
+    assert after < after_part < before and 0 < float(np.abs(part - air).max()) < float(np.abs(full - air).max())
+    same, before, after = soft_correction(air, air, v, m, none, g, mu, weight=1e6, skip_below=2 * m.sum() * g)
+    assert np.array_equal(same, air) and before == after
+    # a sideways acceleration beyond friction (12 m/s^2 > mu g): at least the distance of the
+    # needed force (12, g) M from the cone |f_x| <= mu f_y is left over
+    slide = x + np.array([12.0, 0.0, 0.0]) * H**2
+    metric, _, _ = root_wrench(slide, x, v, m, feet, g, mu)
+    assert metric > 0.99 * m.sum() * (12.0 - mu * g) / np.sqrt(1 + mu**2)
+
+
+def test_range_of_motion_is_the_datas_own(tmp_path):
+    """A knee-like joint that only bends about x between 0 and 2 rad: a pose inside stays, one bent
+    past the data or turned about another axis comes back to the boundary; the file round-trips
+    and a corrupt one is named."""
+    from avatar_motor.physics import limits
+    g = torch.Generator().manual_seed(0)
+
+    def hinge(angles):
+        aa = torch.zeros(len(angles), 21, 3, dtype=torch.float64)
+        aa[..., 0] = angles[:, None]
+        return rot.axis_angle_to_matrix(aa)
+
+    train = hinge(torch.rand(4000, generator=g, dtype=torch.float64) * 2.0)
+    held = hinge(torch.rand(1000, generator=g, dtype=torch.float64) * 2.0)
+    rom = limits.fit(train, held, anchors=32, generator=g)
+    assert bool((rom.radius < 0.1).all())  # 32 anchors over 2 rad: a few hundredths apart
+    inside = hinge(torch.tensor([1.0], dtype=torch.float64))
+    assert torch.allclose(limits.project(inside, rom), inside)
+    past = hinge(torch.tensor([2.6], dtype=torch.float64))
+    back = rot.matrix_to_axis_angle(limits.project(past, rom))
+    assert bool(((back[..., 0] - 2.0).abs() < 0.15).all()) and bool((back[..., 1:].abs() < 1e-6).all())
+    aa = torch.zeros(1, 21, 3, dtype=torch.float64)
+    aa[..., 0], aa[..., 1] = 1.0, 0.6  # bent and twisted off the hinge
+    off = limits.project(rot.axis_angle_to_matrix(aa), rom)
+    d = limits._angles(rot.matrix_to_quat(off), rom.anchors).amin(-1)
+    assert bool((d <= rom.radius + 1e-9).all())  # on the boundary of the data's set
+    limits.save(rom, tmp_path / "rom.safetensors")
+    again = limits.load(tmp_path / "rom.safetensors")
+    assert torch.allclose(again.radius, rom.radius, atol=1e-6)
+    (tmp_path / "bad.safetensors").write_bytes(b"not a file")
+    with pytest.raises(ValueError, match="not a readable range-of-motion"):
+        limits.load(tmp_path / "bad.safetensors")
+
+
+def test_the_range_of_motion_energy_pulls_a_bent_joint_back():
+    """A body whose shin was thrown 1.5 rad past what its data holds: one step with the range of
+    motion energy (no prior) brings the shin back toward the range; without it, it stays bent."""
+    from avatar_motor.physics import limits
+    x0, root, local, off = _standing()
+    g = torch.Generator().manual_seed(0)
+    wiggle = rot.axis_angle_to_matrix(0.15 * torch.randn(600, 21, 3, generator=g, dtype=torch.float64))
+    rom = limits.fit(local @ wiggle, local @ wiggle[:200], anchors=64, generator=g)
+    hip, knee, ankle, foot = (JOINT_INDEX[f"left_{n}"] for n in ("hip", "knee", "ankle", "foot"))
+    R = rot.axis_angle_to_matrix(torch.tensor([1.5, 0.0, 0.0], dtype=torch.float64))
+    x = x0.clone()
+    for j in (ankle, foot):
+        x[:, j] = x[:, knee] + (R @ (x0[:, j] - x0[:, knee])[..., None])[..., 0]
+    x[..., 1] += 0.5  # off the ground, so only the joint limits act on the shin
+
+    def shin_error(cfg, rom_or_none):
+        b = prepare(off, cfg)
+        y, v = x, torch.zeros_like(x)
+        for _ in range(5):
+            y, v, _ = step(b, y, v, _held(x0, root, local), cfg=cfg, rom=rom_or_none)
+        want = rot.normalize(x0[:, ankle] - x0[:, knee])
+        got = rot.normalize(y[:, ankle] - y[:, knee])
+        return float(torch.acos((want * got).sum(-1).clamp(-1, 1)))
+
+    free = shin_error(PhysicsConfig(kinematic=0.0, contact=0.0, gravity=0.0), None)
+    held = shin_error(PhysicsConfig(kinematic=0.0, contact=0.0, gravity=0.0), rom)
+    assert free > 1.3 and held < free - 0.3, (free, held)
