@@ -291,3 +291,98 @@ def test_the_range_of_motion_energy_pulls_a_bent_joint_back():
     free = shin_error(PhysicsConfig(kinematic=0.0, contact=0.0, gravity=0.0), None)
     held = shin_error(PhysicsConfig(kinematic=0.0, contact=0.0, gravity=0.0), rom)
     assert free > 1.3 and held < free - 0.3, (free, held)
+
+
+def _segment_inputs(N: int = 15, K: int = 1):
+    from avatar_motor.body.motion_state import pack
+    x0, root, local, off = _standing()
+    state = pack(x0[:, 0], root, local, x0, torch.zeros_like(x0))  # (1, 267)
+    cands = state[:, None, None].expand(1, K, N, -1).clone()
+    return state, cands, off
+
+
+def test_a_physics_segment_is_one_body_and_stands_when_the_model_stands():
+    from avatar_motor.body.motion_state import body_mismatch, joints_of
+    from avatar_motor.physics.simulate import segment
+    state, cands, off = _segment_inputs()
+    frames, balls, chosen, lengths = segment(prepare(off), state, cands)
+    assert lengths == [15]  # nothing perturbed it: no reason to resample
+    assert frames.shape == (1, 15, 267) and chosen.shape == (1, 15)
+    assert float(body_mismatch(frames, off[:, None]).max()) < 1e-6  # joints = FK of the rotations
+    assert float((joints_of(frames) - joints_of(state)[:, None]).norm(dim=-1).max()) < 0.02
+    v = frames[..., -66:].reshape(1, 15, 22, 3)
+    J = joints_of(frames)
+    assert torch.allclose(v[:, 1:], (J[:, 1:] - J[:, :-1]) * 30, atol=1e-9)  # velocities are the body's
+
+
+def test_a_ball_knocks_the_body_and_bounces_off():
+    """3 kg at 10 m/s into the chest from the front: the chest goes back, the ball comes back slower,
+    and the momentum the ball lost is about what the body took (restitution below 1)."""
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.physics.simulate import Ball, segment
+    state, cands, off = _segment_inputs()
+    b = prepare(off)
+    chest = joints_of(state)[0, JOINT_INDEX["spine3"]]
+    ball = Ball(chest + torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64), torch.tensor([0.0, 0.0, -10.0], dtype=torch.float64),
+                3.0, 0.11)
+    frames, balls, _, lengths = segment(b, state, cands, balls=[[ball]])
+    J = joints_of(frames)
+    after = balls[0][-1][0]
+    assert float(after.velocity[2]) > 0  # bounced back toward +z
+    assert float(J[0, :8, JOINT_INDEX["spine3"], 2].min()) < float(chest[2]) - 0.03  # the chest was knocked back
+    free, _, _, _ = segment(b, state, cands)  # no ball: the chest stays
+    assert float((joints_of(free)[0, :, JOINT_INDEX["spine3"]] - chest).norm(dim=-1).max()) < 0.01
+    hit_frame = next(i for i, bs in enumerate(balls[0]) if float(bs[0].velocity[2]) > 0)
+    assert hit_frame <= 3  # 0.6 m at 10 m/s: within two frames
+    assert lengths == [hit_frame + 1]  # the segment ends at the hit, to be sampled again from there
+
+
+def test_a_spring_pulls_the_hand():
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.physics.simulate import Spring, segment
+    state, cands, off = _segment_inputs()
+    w = JOINT_INDEX["right_wrist"]
+    hand = joints_of(state)[0, w]
+    target = hand + torch.tensor([-0.4, 0.3, 0.5], dtype=torch.float64)
+    frames, _, _, _ = segment(prepare(off), state, cands, springs=[[Spring(w, target, stiffness=800.0)]])
+    d0 = float((hand - target).norm())
+    d1 = float((joints_of(frames)[0, -1, w] - target).norm())
+    assert d1 < 0.7 * d0, (d0, d1)
+
+
+def test_physics_mode_in_the_crowd(tmp_path):
+    """An avatar in physics mode is stepped by the solver with K model candidates per segment; a
+    ball thrown at it hits (its segment is cut at the hit and resampled), the frames are one body,
+    the same seed gives the same frames, and toggling physics off continues from the frame shown."""
+    from avatar_motor.body.motion_state import body_mismatch, joints_of
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+
+    def run(seed):
+        crowd = Crowd(motor, RuntimeConfig(), seed)
+        i = crowd.spawn()
+        crowd.set_physics(i, True)
+        frames = [crowd.next_frames()[i] for _ in range(5)]
+        chest = joints_of(crowd.state(i))[JOINT_INDEX["spine3"]].double()
+        crowd.throw(i, (chest + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).tolist(), [0.0, 0.0, -12.0], mass=3.0)
+        seen = []
+        for _ in range(20):
+            frames.append(crowd.next_frames()[i])
+            seen.append([b.velocity[2].item() for b in crowd.balls(i)])
+        return crowd, i, torch.stack(frames), seen
+
+    crowd, i, frames, seen = run(0)
+    assert seen[0] and seen[0][0] < 0 and any(v and v[0] > 0 for v in seen)  # the ball came and bounced off
+    from avatar_motor.body.skeleton import rest_offsets
+    assert float(body_mismatch(frames.double(), rest_offsets(None, torch.float64)).max()) < 1e-4
+    _, _, again, _ = run(0)
+    assert torch.equal(frames, again)
+    crowd.next_frames()
+    crowd.set_physics(i, False)  # off: the queue is cut and the model continues from the frame shown
+    a = crowd.avatars[i]
+    assert a.queue == [] and a.ball_queue == [] and a.balls == [] and crowd.balls(i) == []
+    crowd.next_frames()
+    assert a.queue and all(not b for b in a.ball_queue)
+    with pytest.raises(ValueError, match="not in physics mode"):
+        crowd.throw(i, [0, 1, 1], [0, 0, -5])

@@ -173,6 +173,46 @@ def test_headless_replay_is_reproducible(tmp_path):
     assert (runs[0] - runs[1]).abs().max() == 0
 
 
+def test_a_command_keeps_the_frames_the_clock_shows_before_its_segment(tmp_path):
+    """Served, a command's cut keeps as many queued frames as ticks pass before the new segment
+    can be ready (the batch in flight first): none when it is ready before the next tick, so a
+    command shows at that tick. The frames kept are in the event, and a replay cuts the same."""
+    from avatar_motor.serve.world import CUT_MARGIN, MAX_KEEP
+    w = World(tiny_motor(tmp_path), seed=0)
+    w.apply({"type": "spawn"}, log=False)
+    w.run_offline(5)
+    now, period = 100.0, 1 / 30
+    w.segment_seconds = 0.010
+    ready = 0.010 * (1 + CUT_MARGIN[0]) + CUT_MARGIN[1]  # after now
+    w.next_tick = now + ready + 0.001
+    assert w.frames_to_keep_now(now) == 0  # ready before the next tick
+    w.next_tick = now + ready - 0.001
+    assert w.frames_to_keep_now(now) == 1  # one tick passes first
+    w.generating_since = now - 0.002  # a batch in flight: 8 ms more
+    w.next_tick = now + ready + 0.004
+    assert w.frames_to_keep_now(now) == 1
+    w.generating_since = None
+    w.segment_seconds = 1.0  # a slow machine: at most MAX_KEEP
+    assert w.frames_to_keep_now(now) == MAX_KEEP
+    w.segment_seconds, w.next_tick = 0.010, now + ready + 2.5 * period
+    assert w.frames_to_keep_now(now) == 0
+
+    # through apply: the clock's next tick far ahead keeps none, just passed keeps one
+    import time as _time
+    for ahead, keep in ((10.0, 0), (-0.001, 1)):
+        w.run_offline(20)  # queues full again
+        w.next_tick = _time.perf_counter() + ahead
+        w.apply({"type": "impulse", "avatar": 0, "preset": "forward_run"})
+        assert w.events[-1]["keep"] == keep and len(w.crowd.avatars[0].queue) == keep
+    # a replay takes each event's keep
+    script = [dict(e, frame=e["frame"] + 5) for e in w.events]
+    r = World(tiny_motor(tmp_path), seed=0)
+    r.apply({"type": "spawn"}, log=False)
+    r.crowd.keep_on_cut = 3
+    r.run_offline(script[0]["frame"] + 1, script[:1])
+    assert r.events[-1]["keep"] == 0
+
+
 def test_record_and_events_downloads(server):
     import urllib.request
     base = f"http://127.0.0.1:{server.port}"
@@ -325,10 +365,9 @@ def _fuzz_variants(kind: str, rng: random.Random) -> list[dict]:
     from avatar_motor.serve import protocol as P
     required, optional = P._FIELDS[kind]
     good = {"avatar": 0, "preset": "left_kick", "joint": "head", "velocity": [0.0, 0.0, 1.0], "label": "wave",
-            "seed": 1}
+            "seed": 1, "on": True, "force": [0.0, 0.0, 100.0], "seconds": 0.5, "target": [0.0, 1.0, 1.0],
+            "position": [0.0, 1.0, 3.0]}
     base = {"type": kind, **{k: good[k] for k in required}}
-    if kind == "push":
-        base["velocity"] = [0.0, 0.0, 1.0]
     bad_values = [None, True, "x" * 300, -1, 1e309, [1e6, 1e6, 1e6], {"a": 1}, [None], ["spawn"], 2**40]
     out = [{**{k: v for k, v in base.items() if k != field}} for field in required]
     for field in [*required, *optional]:
@@ -361,4 +400,5 @@ def test_every_message_class_is_fuzzed_and_errors_carry_the_id(server):
         c.send_raw("x" * 70000)  # over 64 KiB and under the socket's 1 MiB: an error reply, not a closed socket
         assert "exceeds" in c._wait_message(lambda m: m.get("type") == "error" and "exceeds" in m["error"])["error"]
         c.command({"type": "reset"})
+        c.command({"type": "physics", "avatar": 0, "on": False})  # a fuzzed variant may have turned it on
         assert c.command({"type": "goal", "avatar": 0, "velocity": None})["ok"]

@@ -172,6 +172,34 @@ def _timed_args(values: list[str] | None, what: str, parse) -> list[tuple[float,
     return sorted(out, key=lambda x: x[0])
 
 
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise ValueError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
+    return vals
+
+
+def _parse_force(text: str):
+    """JOINT:FX,FY,FZ:SECONDS (world newtons) -> (joint, force, seconds)."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"--force {text!r}: use JOINT:FX,FY,FZ:SECONDS, e.g. pelvis:0,0,800:0.2@2")
+    joint = int(parts[0]) if parts[0].isdigit() else parts[0]
+    return joint, _floats(parts[1], 3, f"--force {text!r} force"), _floats(parts[2], 1, f"--force {text!r} seconds")[0]
+
+
+def _parse_ball(text: str):
+    """X,Y,Z:VX,VY,VZ[:MASS] (world m, m/s, kg) -> (position, velocity, mass)."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"--ball {text!r}: use X,Y,Z:VX,VY,VZ[:MASS], e.g. 0,1.3,3:0,0,-10:2@1.5")
+    mass = _floats(parts[2], 1, f"--ball {text!r} mass")[0] if len(parts) == 3 else 1.0
+    return _floats(parts[0], 3, f"--ball {text!r} position"), _floats(parts[1], 3, f"--ball {text!r} velocity"), mass
+
+
 def _parse_goal(text: str):
     import math
 
@@ -220,24 +248,16 @@ def load_init(spec: str):
 def _load_adaptors(a, motor) -> list:
     """The --adaptor folders (repeatable), loaded on the model's base; none given: the adaptors
     shipped in models/ for that base (`shipped_adaptors`), so the studio has them out of the box."""
-    from .model.adaptor import load_adaptor, shipped_adaptors
-    from .model.checkpoint import CheckpointError, load_base
+    from .model.adaptor import default_adaptors, load_adaptor
+    from .model.checkpoint import load_base
     if a.adaptor is None:
-        try:
-            base = load_base(motor)  # a few-step model runs an adaptor's avatars on its base
-        except CheckpointError:  # a few-step model away from its base: no shipped adaptor can run
-            return []
-        folders = shipped_adaptors(MODELS, base)
+        out = default_adaptors(motor, MODELS)
     else:
         folders = [f for f in a.adaptor if f not in ("", "none")]
-        if not folders:
-            return []
-        base = load_base(motor)
-    out = []
-    for folder in folders:
-        model = load_adaptor(folder, base.net, base.name)
+        base = load_base(motor) if folders else None
+        out = [load_adaptor(folder, base.net, base.name) for folder in folders]
+    for model in out:
         model.guidance = a.guidance
-        out.append(model)
     return out
 
 
@@ -286,10 +306,15 @@ def _generate(a) -> int:
         raise ValueError(f"--out {out}: use a .bvh, .glb or .npz file name")
     labels = _timed_args(a.label, "--label", lambda v: None if v.lower() in ("none", "free") else v)
     targets = _timed_args(a.target, "--target", _parse_xz)
+    forces = _timed_args(a.force, "--force", _parse_force)
+    balls = _timed_args(a.ball, "--ball", _parse_ball)
+    if (forces or balls) and not a.physics:
+        raise ValueError("--force and --ball act on a simulated body: add --physics")
     motor = load_checkpoint(a.model)
     init, shape = load_init(a.init) if a.init else (None, None)
     crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptors(a, motor))
     i = crowd.spawn(init, shape)
+    crowd.set_physics(i, a.physics)
     frames = [crowd.state(i)]
     n = int(round(a.seconds * 30))
     for f in range(1, n):
@@ -302,6 +327,11 @@ def _generate(a) -> int:
             crowd.set_label(i, labels.pop(0)[1], a.adaptor_scale)
         while targets and targets[0][0] <= t:
             crowd.set_target(i, targets.pop(0)[1], a.adaptor_scale)
+        while forces and forces[0][0] <= t:
+            crowd.apply_force(i, *forces.pop(0)[1])
+        while balls and balls[0][0] <= t:
+            position, velocity, mass = balls.pop(0)[1]
+            crowd.throw(i, position, velocity, mass)
         frames.append(crowd.next_frames()[i])
     X = torch.stack(frames)
     write_motion(out, X, crowd.shape(i), meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
@@ -685,6 +715,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
                    help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the guidance weight (a second, batched network pass; see --guidance)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
+    g.add_argument("--physics", action="store_true", help="physics mode (DROP): the body is simulated, the model its control")
+    g.add_argument("--force", action="append", help="JOINT:FX,FY,FZ:SECONDS[@SECONDS] world newtons held on a joint (physics; repeatable)")
+    g.add_argument("--ball", action="append", help="X,Y,Z:VX,VY,VZ[:MASS][@SECONDS] a ball thrown (physics; repeatable)")
     _add_runtime_args(g)
     g.add_argument("--out", required=True)
     g.set_defaults(func=_generate)

@@ -55,51 +55,95 @@ let PARENTS = [];
 let JOINTS = [];
 const UP = new THREE.Vector3(0, 1, 0);
 
-class Body {
-  constructor(id) {
-    this.id = id;
-    this.group = new THREE.Group();
-    const mat = new THREE.MeshStandardMaterial({ color: COLORS[id % COLORS.length], roughness: 0.55, metalness: 0.05 });
-    this.joints = [];
-    this.bones = [];
-    for (let j = 0; j < 22; j++) {
-      const s = new THREE.Mesh(new THREE.SphereGeometry(j === 15 ? 0.11 : RADIUS[j] * 1.05, 16, 12), mat);
-      s.castShadow = true;
-      s.userData = { avatar: id, joint: j };
-      this.group.add(s);
-      this.joints.push(s);
-      if (PARENTS[j] >= 0) {
-        const c = new THREE.Mesh(new THREE.CylinderGeometry(1, 1, 1, 12), mat);
-        c.castShadow = true;
-        c.userData = { avatar: id, joint: j };
-        this.group.add(c);
-        this.bones.push([j, c]);
+// every avatar's joints and bones drawn as two instanced meshes (two draw calls and their shadows
+// for any crowd): one mesh per joint and bone had 128 avatars issue 11,000 draw calls a frame
+const JOINT_GEO = new THREE.SphereGeometry(1, 12, 8);
+const BONE_GEO = new THREE.CylinderGeometry(1, 1, 1, 10);
+const BODY_MAT = new THREE.MeshStandardMaterial({ roughness: 0.55, metalness: 0.05 });
+const _m = new THREE.Matrix4(), _q = new THREE.Quaternion(), _a = new THREE.Vector3(), _b = new THREE.Vector3(),
+  _d = new THREE.Vector3(), _s = new THREE.Vector3(), _c = new THREE.Color();
+
+class CrowdView {
+  constructor() { this.capacity = 0; this.order = []; this.dirty = false; this.bonesOf = []; this.colorOf = []; this.colored = 0; }
+  ensure(n) {  // room for n avatars, grown by doubling
+    if (n <= this.capacity) return;
+    if (this.joints) { scene.remove(this.joints, this.bones); this.joints.dispose(); this.bones.dispose(); }
+    this.capacity = Math.max(16, 2 ** Math.ceil(Math.log2(n)));
+    this.joints = new THREE.InstancedMesh(JOINT_GEO, BODY_MAT, this.capacity * 22);
+    this.bones = new THREE.InstancedMesh(BONE_GEO, BODY_MAT, this.capacity * 21);
+    for (const m of [this.joints, this.bones]) {
+      m.castShadow = true;
+      m.frustumCulled = false;  // the instances move every frame; the bounds are recomputed only to pick
+      m.count = 0;
+      scene.add(m);
+    }
+    this.colored = 0;
+  }
+  // write every body's instances (when a frame arrived); bodies: Map id -> {positions}
+  draw(bodies) {
+    if (!this.dirty || !PARENTS.length) return;
+    this.dirty = false;
+    this.bonesOf = PARENTS.map((p, j) => (p >= 0 ? j : -1)).filter((j) => j >= 0);
+    const ids = [...bodies.keys()].sort((x, y) => x - y);
+    this.ensure(ids.length);
+    this.order = ids;
+    let k = 0;
+    for (const id of ids) {
+      const pos = bodies.get(id).positions;
+      if (!pos) continue;
+      if (k >= this.colored || this.colorOf[k] !== id) {  // colours follow the avatar's id
+        _c.setHex(COLORS[id % COLORS.length]);
+        for (let j = 0; j < 22; j++) this.joints.setColorAt(k * 22 + j, _c);
+        for (let j = 0; j < 21; j++) this.bones.setColorAt(k * 21 + j, _c);
+        this.colorsChanged = true;
       }
+      for (let j = 0; j < 22; j++) {
+        const r = j === 15 ? 0.11 : RADIUS[j] * 1.05;
+        _m.makeScale(r, r, r).setPosition(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+        this.joints.setMatrixAt(k * 22 + j, _m);
+      }
+      for (let n = 0; n < this.bonesOf.length; n++) {
+        const j = this.bonesOf[n], p = PARENTS[j];
+        _a.set(pos[3 * p], pos[3 * p + 1], pos[3 * p + 2]);
+        _b.set(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+        _d.subVectors(_b, _a);
+        const len = _d.length();
+        const r = Math.min(RADIUS[j], RADIUS[p]) * 0.9;
+        _q.setFromUnitVectors(UP, len > 1e-6 ? _d.divideScalar(len) : UP);
+        _m.compose(_a.addScaledVector(_b.sub(_a), 0.5), _q, _s.set(r, Math.max(len, 1e-3), r));
+        this.bones.setMatrixAt(k * 21 + n, _m);
+      }
+      k++;
     }
-    scene.add(this.group);
-    this.positions = null;
-  }
-  update(pos) {  // pos: Float32Array(66), world metres (our world is three's world: Y up, right-handed)
-    this.positions = pos;
-    const p = (j) => new THREE.Vector3(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
-    for (let j = 0; j < 22; j++) this.joints[j].position.copy(p(j));
-    for (const [j, c] of this.bones) {
-      const a = p(PARENTS[j]), b = p(j);
-      const d = b.clone().sub(a);
-      const len = d.length();
-      const r = Math.min(RADIUS[j], RADIUS[PARENTS[j]]) * 0.9;
-      c.position.copy(a).addScaledVector(d, 0.5);
-      c.scale.set(r, Math.max(len, 1e-3), r);
-      c.quaternion.setFromUnitVectors(UP, d.normalize());
+    this.colorOf = ids.slice(0, k);
+    this.colored = k;
+    this.joints.count = k * 22;
+    this.bones.count = k * 21;
+    for (const m of [this.joints, this.bones]) {
+      m.instanceMatrix.needsUpdate = true;
+      if (m.instanceColor && this.colorsChanged) m.instanceColor.needsUpdate = true;
+      m.boundingSphere = null;  // stale: recomputed when picking
     }
+    this.colorsChanged = false;
   }
-  dispose() { scene.remove(this.group); }
+  // the avatar and joint under the ray, or null
+  pick(ray) {
+    if (!this.joints) return null;
+    const hits = ray.intersectObjects([this.joints, this.bones]);
+    if (!hits.length) return null;
+    const h = hits[0];
+    const per = h.object === this.joints ? 22 : 21;
+    const avatar = this.order[Math.floor(h.instanceId / per)];
+    const joint = h.object === this.joints ? h.instanceId % 22 : this.bonesOf[h.instanceId % 21];
+    return { avatar, joint, point: h.point };
+  }
 }
+const view = new CrowdView();
 const bodies = new Map();
 
 // ---------------------------------------------------------------- connection
 const state = { frame: 0, connected: false, fpsTimes: [], renderTimes: [], selected: 0, model: "", lastStats: null,
-  received: 0, errors: [], stalls: 0, stallsRecent: 0 };
+  received: 0, errors: [], stalls: 0, stallsRecent: 0, physics: new Set(), balls: [] };
 window.studio = state;  // for tests and the console
 let ws;
 let nextId = 1;
@@ -137,6 +181,9 @@ function connect() {
       $("gen").textContent = msg.gen_ms;
       $("stalls").textContent = msg.stalls;
       warn();
+    } else if (msg.type === "balls") {
+      state.balls = msg.balls;
+      drawBalls(msg.balls);
     } else if (msg.type === "ack" || msg.type === "error") {
       if (msg.type === "error") { state.errors.push(msg.error); console.warn(msg.error); }
       const r = pending.get(msg.id);
@@ -165,10 +212,10 @@ function onFrame(buf) {
     const pos = new Float32Array(buf.slice(off + 4, off + 4 + 264));
     off += 4 + 264 + 352;
     seen.add(id);
-    if (!bodies.has(id) && PARENTS.length) bodies.set(id, new Body(id));
-    if (bodies.has(id)) bodies.get(id).update(pos);
+    if (PARENTS.length) bodies.set(id, { id, positions: pos });
   }
-  for (const [id, b] of bodies) if (!seen.has(id)) { b.dispose(); bodies.delete(id); }
+  for (const id of [...bodies.keys()]) if (!seen.has(id)) bodies.delete(id);
+  view.dirty = true;
   state.frame = frame;
   state.received++;
   const now = performance.now();
@@ -177,11 +224,14 @@ function onFrame(buf) {
   refreshSelect();
 }
 state.pelvis = (id) => { const b = bodies.get(id ?? state.selected); return b && b.positions ? Array.from(b.positions.slice(0, 3)) : null; };
-state.screenOf = (id, joint) => {  // pixel position of a joint (tests drive the mouse with it)
+state.screenOfPoint = (x, y, z) => {  // pixel position of a world point (tests drive the mouse with it)
+  const v = new THREE.Vector3(x, y, z).project(camera);
+  return [(v.x + 1) / 2 * window.innerWidth, (1 - v.y) / 2 * window.innerHeight];
+};
+state.screenOf = (id, joint) => {  // pixel position of a joint
   const b = bodies.get(id);
   if (!b || !b.positions) return null;
-  const v = new THREE.Vector3(b.positions[3 * joint], b.positions[3 * joint + 1], b.positions[3 * joint + 2]).project(camera);
-  return [(v.x + 1) / 2 * window.innerWidth, (1 - v.y) / 2 * window.innerHeight];
+  return state.screenOfPoint(b.positions[3 * joint], b.positions[3 * joint + 1], b.positions[3 * joint + 2]);
 };
 state.joints = (id) => { const b = bodies.get(id ?? state.selected); return b && b.positions ? Array.from(b.positions) : null; };
 
@@ -195,7 +245,7 @@ function refreshSelect() {
   }
   $("count").textContent = ids.length;
 }
-$("select").onchange = (e) => { state.selected = Number(e.target.value); };
+$("select").onchange = (e) => { state.selected = Number(e.target.value); showPhysics(); };
 
 // ---------------------------------------------------------------- panel
 function buildPresets(presets) {
@@ -245,6 +295,49 @@ $("reset").onclick = () => send({ type: "reset", avatar: state.selected });
 let placingMagnet = false;
 $("magnet").onclick = () => { placingMagnet = !placingMagnet; $("magnet").classList.toggle("on", placingMagnet); };
 $("unmagnet").onclick = () => { magnetMesh.visible = false; send({ type: "target", avatar: state.selected, position: null }); };
+
+// ---------------------------------------------------------------- physics: toggle, balls, springs
+const ballMeshes = [];
+const BALL_MAT = new THREE.MeshStandardMaterial({ color: 0xe8e0c8, roughness: 0.6 });
+function drawBalls(balls) {
+  while (ballMeshes.length < balls.length) {
+    const m = new THREE.Mesh(new THREE.SphereGeometry(1, 16, 12), BALL_MAT);
+    m.castShadow = true;
+    scene.add(m);
+    ballMeshes.push(m);
+  }
+  ballMeshes.forEach((m, k) => {
+    m.visible = k < balls.length;
+    if (m.visible) { m.position.fromArray(balls[k].position); m.scale.setScalar(balls[k].radius); }
+  });
+}
+function showPhysics() {
+  const on = state.physics.has(state.selected);
+  $("physics").textContent = `physics: ${on ? "on" : "off"}`;
+  $("physics").classList.toggle("on", on);
+}
+$("physics").onclick = async () => {
+  const on = !state.physics.has(state.selected);
+  const r = await send({ type: "physics", avatar: state.selected, on });
+  if (r && r.ok) { if (on) state.physics.add(state.selected); else state.physics.delete(state.selected); }
+  showPhysics();
+};
+// a ball from the camera at the selected avatar's chest (spine3), at the panel's speed and mass
+state.throwBall = async () => {
+  const b = bodies.get(state.selected);
+  if (!b || !b.positions) return null;
+  if (!state.physics.has(state.selected)) { await $("physics").onclick(); }
+  const chest = new THREE.Vector3(b.positions[27], b.positions[28], b.positions[29]);
+  const from = camera.position.clone();
+  const d = chest.clone().sub(from);
+  const speed = Number($("ball-speed").value) || 10;
+  const time = d.length() / speed;  // aim above the chest by the drop gravity gives over the flight
+  const v = d.normalize().multiplyScalar(speed);
+  v.y += 0.5 * 9.81 * time;
+  return send({ type: "ball", avatar: state.selected, position: from.toArray().map((x) => +x.toFixed(3)),
+    velocity: v.toArray().map((x) => +x.toFixed(3)), mass: Number($("ball-mass").value) || 2 });
+};
+$("throw").onclick = () => state.throwBall();
 const download = (fmt) => {
   const s = Math.max(1, Math.min(60, Number($("seconds").value) || 10));
   location.href = `/api/record?avatar=${state.selected}&seconds=${s}&format=${fmt}${token ? "&token=" + token : ""}`;
@@ -318,21 +411,24 @@ renderer.domElement.addEventListener("pointerdown", (ev) => {
     $("magnet").classList.remove("on");
     return;
   }
-  const meshes = [];
-  for (const b of bodies.values()) meshes.push(...b.group.children);
-  const hits = ray.intersectObjects(meshes);
-  if (!hits.length) return;
-  const { avatar, joint } = hits[0].object.userData;
+  const hit = view.pick(ray);
+  if (!hit) return;
+  const { avatar, joint, point } = hit;
   state.selected = avatar;
   $("select").value = String(avatar);
-  drag = { avatar, joint, start: hits[0].point.clone(), y: hits[0].point.y };
+  drag = { avatar, joint, start: point.clone(), y: point.y };
   orbit.enabled = false;
 });
+let lastSpring = 0;
 renderer.domElement.addEventListener("pointermove", (ev) => {
   if (!drag) return;
   pick(ev);
   const p = onPlane(drag.y);
   if (!p) return;
+  if (state.physics.has(drag.avatar) && performance.now() - lastSpring > 60) {  // at most ~16 updates a second
+    lastSpring = performance.now();
+    send({ type: "spring", avatar: drag.avatar, joint: drag.joint, target: p.toArray().map((x) => +x.toFixed(3)) });
+  }
   const d = p.clone().sub(drag.start);
   arrow.position.copy(drag.start);
   arrow.setDirection(d.clone().normalize());
@@ -343,7 +439,9 @@ window.addEventListener("pointerup", (ev) => {
   if (!drag) return;
   pick(ev);
   const p = onPlane(drag.y);
-  if (p) {
+  if (state.physics.has(drag.avatar)) {  // the spring lets go
+    send({ type: "spring", avatar: drag.avatar, joint: drag.joint, target: null });
+  } else if (p) {
     const d = p.sub(drag.start);
     const v = d.multiplyScalar(4.0);  // 1 m of drag = 4 m/s
     if (v.length() > 8) v.setLength(8);
@@ -373,6 +471,7 @@ function animate(t) {
   }
   if (t - lastPad > 150 && navigator.getGamepads && [...navigator.getGamepads()].some(Boolean)) { lastPad = t; steer(); }
   orbit.update();
+  view.draw(bodies);
   renderer.render(scene, camera);
   state.renderTimes.push(t);
   while (state.renderTimes.length && t - state.renderTimes[0] > 1000) state.renderTimes.shift();

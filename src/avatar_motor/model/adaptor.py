@@ -247,3 +247,15 @@ def shipped_adaptors(models: str | Path, base) -> list[Path]:
         if isinstance(meta, dict) and meta.get("base_fingerprint") == fp:
             out.append(meta_path.parent)
     return out
+
+
+def default_adaptors(motor, models: str | Path) -> list[AdaptedDenoiser]:
+    """The adaptors a command runs when it is given none: those under `models` trained on the
+    motor's base (`shipped_adaptors`), loaded on that base. None when a few-step model's base is
+    not beside it: no adaptor could run."""
+    from .checkpoint import CheckpointError, load_base
+    try:
+        base = load_base(motor)  # a few-step model runs an adaptor's avatars on its base
+    except CheckpointError:
+        return []
+    return [load_adaptor(folder, base.net, base.name) for folder in shipped_adaptors(models, base)]

@@ -80,6 +80,11 @@ class PhysicsConfig:
     range_of_motion: float = 3.0  # joint limits (DROP w3)
     kinematic: float = 3.0  # the motion model's nearest candidate (DROP w_kin)
     gravity: float = 9.81  # m/s^2, along -y
+    candidates: int = 8  # next frames sampled from the model per body (DROP's K)
+    # a segment ends early (and the next is sampled from where the body is) once a ball hits or the
+    # solved body is this far (m, mass-weighted RMS over the joints) from every candidate: the
+    # candidates were drawn at the segment's start and no longer describe this body
+    resample_distance: float = 0.08
 
     def validate(self) -> None:
         for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "gravity"):
@@ -90,6 +95,10 @@ class PhysicsConfig:
             raise ValueError(f"physics mass must be > 0 kg, got {self.mass!r}")
         if not (isinstance(self.iterations, int) and 1 <= self.iterations <= 100):
             raise ValueError(f"physics iterations must be an integer 1..100, got {self.iterations!r}")
+        if not (isinstance(self.candidates, int) and 1 <= self.candidates <= 64):
+            raise ValueError(f"physics candidates must be an integer 1..64, got {self.candidates!r}")
+        if not (self.resample_distance > 0):
+            raise ValueError(f"physics resample_distance must be > 0 m, got {self.resample_distance!r}")
 
 
 @dataclass
@@ -226,31 +235,52 @@ def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, fo
     return it, (it - x) / H, k
 
 
+def _tree_levels() -> list[tuple]:
+    """Per depth of the tree: its joints and their parents, those among them with one child (and
+    the child), and those with several (the pelvis, the upper spine) with their children."""
+    depth = [0] * NUM_JOINTS
+    for j in range(1, NUM_JOINTS):
+        depth[j] = depth[PARENTS[j]] + 1
+    kids = [[c for c in range(NUM_JOINTS) if PARENTS[c] == j] for j in range(NUM_JOINTS)]
+    out = []
+    for d in range(max(depth) + 1):
+        joints = [j for j in range(NUM_JOINTS) if depth[j] == d]
+        one = [j for j in joints if len(kids[j]) == 1]
+        several = [j for j in joints if len(kids[j]) > 1]
+        out.append((torch.tensor(joints), torch.tensor([PARENTS[j] for j in joints]), torch.tensor(one),
+                    torch.tensor([kids[j][0] for j in one]), [(j, torch.tensor(kids[j])) for j in several]))
+    return out
+
+
+_TREE = _tree_levels()
+
+
 def pose_from_particles(x: torch.Tensor, sample_root: torch.Tensor, sample_local: torch.Tensor,
                         offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The one body of solved particles x (B, 22, 3) (DROP §7): each joint's rotation is the
     chosen sample's (root (B, 3, 3), local (B, 21, 3, 3)) turned by the swing that lays its bones
     along the solved ones: the smallest rotation for a joint with one child (so the sample's twist
     about the bone stays), the best fit (Kabsch) for the pelvis and the upper spine, which carry
-    several; a leaf (head, wrists, feet) keeps the sample's local rotation. Returns the root
-    position (the solved pelvis), root rotation, local rotations and FK joints on `offsets`."""
+    several; a leaf (head, wrists, feet) keeps the sample's local rotation. Joints of one depth are
+    solved together, parents first. Returns the root position (the solved pelvis), root rotation,
+    local rotations and FK joints on `offsets`."""
     dt = x.dtype
-    off = offsets.to(dt)
+    B = len(x)
+    off = offsets.to(dt).expand(B, NUM_JOINTS, 3)
     sample_root, sample_local = sample_root.to(dt), sample_local.to(dt)
-    _, G_s = forward_kinematics(x[:, 0], sample_root, sample_local, off)  # the sample's global rotations
-    G = [None] * NUM_JOINTS
-    for j in range(NUM_JOINTS):  # parents first (SMPL order is breadth-first)
-        kids = [c for c in range(NUM_JOINTS) if PARENTS[c] == j]
-        # the joint's frame as the sample has it, carried by its parent's new rotation
-        Gj = G_s[:, j] if j == 0 else G[PARENTS[j]] @ sample_local[:, j - 1]
-        if kids:
-            src = torch.einsum("bij,bkj->bki", Gj, off[:, kids])  # bones the sample's frame lays
-            dst = x[:, kids] - x[:, j:j + 1]  # where the solver put them
-            R = rot.rotation_between(src[:, 0], dst[:, 0]) if len(kids) == 1 else rot.kabsch(src, dst)
-            Gj = R @ Gj
-        G[j] = Gj
-    Gs = torch.stack(G, 1)
-    local = Gs[:, PARENTS[1:]].transpose(-1, -2) @ Gs[:, 1:]
-    J, _ = forward_kinematics(x[:, 0], Gs[:, 0], local, off)
-    return x[:, 0], Gs[:, 0], local, J
-
+    G = torch.empty(B, NUM_JOINTS, 3, 3, dtype=dt)
+    for j, parents, o, c, several in _TREE:
+        # each joint's frame as the sample has it, carried by its parent's new rotation
+        if int(j[0]) == 0:
+            G[:, 0] = sample_root
+        else:
+            G[:, j] = G[:, parents] @ sample_local[:, j - 1]
+        if len(o):
+            src = (G[:, o] @ off[:, c, :, None])[..., 0]  # the bone the sample's frame lays
+            G[:, o] = rot.rotation_between(src, x[:, c] - x[:, o]) @ G[:, o]
+        for k, kids in several:
+            src = torch.einsum("bij,bkj->bki", G[:, k], off[:, kids])
+            G[:, k] = rot.kabsch(src, x[:, kids] - x[:, k:k + 1]) @ G[:, k]
+    local = G[:, PARENTS[1:]].transpose(-1, -2) @ G[:, 1:]
+    J, _ = forward_kinematics(x[:, 0], G[:, 0], local, off)
+    return x[:, 0], G[:, 0], local, J

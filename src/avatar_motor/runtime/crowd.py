@@ -20,11 +20,13 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
-from ..body.motion_state import SLICES, STATE_DIM, canonical_transform, apply_transform, pack
+from ..body.motion_state import FPS, SLICES, STATE_DIM, Transform, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
-from .processing import physical_faults
-from .sampler import Sampler
-from .stages import DEFAULT_STAGES, SegmentBatch, StageContext, check_stages, run_stages
+from ..physics import simulate as physics
+from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
+from .processing import physical_faults, solve_body
+from .sampler import Sampler, _subset
+from .stages import DEFAULT_STAGES, PhysicsJob, SegmentBatch, StageContext, check_stages, run_stages
 
 
 def _joints(*names: str) -> list[int]:
@@ -47,6 +49,8 @@ IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
                      (0.0, -0.5, 0.5)),
 }
 IMPULSE_SCALE = 30.0
+MAX_FORCE = 5000.0  # N: a force command above this is a mistake (a 400 N s push over one frame is 12,000 N: use an impulse)
+MAX_BALLS = 8  # balls an avatar's simulation keeps (the oldest goes)
 log = logging.getLogger("avatar_motor.runtime")
 
 
@@ -111,6 +115,8 @@ class RuntimeConfig:
     # regenerate (issue #26: a 30-60 Hz goal stream froze the avatar)
     recut_velocity: float = 0.2
     recut_facing: float = 0.2
+    # avatars in physics mode (issue #29, DROP): the solver's energies and the candidates it draws
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
 
 
 @dataclass
@@ -135,6 +141,15 @@ class AvatarState:
     recut: bool = False  # some control changed while regenerating: cut again when it commits
     planned: tuple = ()  # the controls the latest prepared segment was made with
     gen: torch.Generator | None = None  # this avatar's own noise: seeded by (crowd seed, avatar id)
+    # physics mode: the solver steps the body frame by frame, the model's samples its kinematic energy
+    physics: bool = False
+    frame: int = 0  # frames shown so far (timed forces are scheduled on it)
+    forces: list = field(default_factory=list)  # [joint, (3,) N, first frame, end frame) timed forces
+    springs: list = field(default_factory=list)  # physics.Spring: joints pulled toward points (drags)
+    balls: list = field(default_factory=list)  # physics.Ball: the balls as of the last queued frame
+    shown_balls: list = field(default_factory=list)  # and as of the frame shown
+    ball_queue: list = field(default_factory=list)  # the balls of each queued frame (beside queue)
+    pending_balls: list = field(default_factory=list)  # thrown, entering at the next segment
 
     @property
     def adapted(self) -> bool:
@@ -277,6 +292,7 @@ class Crowd:
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
         a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
         a.near_target = False
+        a.forces, a.springs, a.balls, a.shown_balls, a.pending_balls = [], [], [], [], []
         self.interrupt(i)
 
     def reseed(self, seed: int) -> None:
@@ -290,9 +306,16 @@ class Crowd:
         """Drop all queued frames so the next segment starts from the frame shown now; segments
         being generated for the old queue are discarded (epoch)."""
         a = self._get(i)
-        a.queue.clear()
+        self._trim(a, 0)
         a.epoch += 1
         a.regenerating, a.recut = True, False
+
+    @staticmethod
+    def _trim(a: AvatarState, n: int) -> None:
+        """Keep the first n queued frames (and their balls): the next segment starts after them."""
+        del a.queue[n:]
+        del a.ball_queue[n:]
+        a.balls = list(a.ball_queue[-1]) if a.ball_queue else list(a.shown_balls)
 
     def _changed(self, a: AvatarState) -> None:
         """A control of avatar a changed. If the queued frames no longer follow it, they are cut:
@@ -306,7 +329,7 @@ class Crowd:
         if a.regenerating:
             a.recut = True
             return
-        del a.queue[self.keep_on_cut:]
+        self._trim(a, self.keep_on_cut)
         a.epoch += 1
         a.regenerating = True
 
@@ -405,6 +428,81 @@ class Crowd:
         a.pending_velocity = dv if a.pending_velocity is None else a.pending_velocity + dv
         self._changed(a)
 
+    # ------------------------------------------------------------ physics (DROP)
+    def set_physics(self, i: int, on: bool) -> None:
+        """Physics mode for avatar i: from the next segment its body is stepped by the solver
+        (physics/), the model's samples its kinematic energy; off, the model alone again. Either
+        way the motion continues from the frame shown, so toggling does not jump. Off drops its
+        forces, springs and balls."""
+        a = self._get(i)
+        if bool(on) == a.physics:
+            return
+        a.physics = bool(on)
+        if not a.physics:
+            a.forces, a.springs, a.balls, a.shown_balls, a.pending_balls = [], [], [], [], []
+        self._perturbed(a)
+
+    def _physical(self, a: AvatarState, what: str) -> None:
+        if not a.physics:
+            raise ValueError(f"avatar {a.id} is not in physics mode: {what} acts only on a simulated body; "
+                             "turn physics on for it first")
+
+    def _perturbed(self, a: AvatarState) -> None:
+        """Something physical changed: the queued frames no longer hold (they are cut like a command's)."""
+        a.planned = ()
+        self._changed(a)
+
+    def _joint(self, joint) -> int:
+        j = JOINT_NAMES.index(joint) if isinstance(joint, str) and joint in JOINT_NAMES else joint
+        if not isinstance(j, int) or isinstance(j, bool) or not 0 <= j < 22:
+            raise ValueError(f"unknown joint {joint!r}; use an index 0..21 or one of {JOINT_NAMES}")
+        return j
+
+    def apply_force(self, i: int, joint, force, seconds: float) -> None:
+        """A world force (N) on one joint for `seconds`, from the next segment (physics mode)."""
+        a = self._get(i)
+        self._physical(a, "a force")
+        f = validate_vector(force, 3, "force (N)")
+        if float(f.norm()) > MAX_FORCE:
+            raise ValueError(f"force of {float(f.norm()):.0f} N is above {MAX_FORCE:.0f} N")
+        if not (math.isfinite(seconds) and 0 < seconds <= 10):
+            raise ValueError(f"force duration must be in (0, 10] s, got {seconds}")
+        first = a.frame + self.keep_on_cut + 1  # the first frame the cut makes anew
+        a.forces.append((self._joint(joint), f, first, first + max(1, round(seconds * FPS))))
+        self._perturbed(a)
+
+    def set_spring(self, i: int, joint, target, stiffness: float = 400.0) -> None:
+        """Pull a joint toward a world point (x, y, z) with a spring of `stiffness` N/m (the
+        studio's drag); target None releases that joint (physics mode)."""
+        a = self._get(i)
+        j = self._joint(joint)
+        a.springs = [sp for sp in a.springs if sp.joint != j]
+        if target is not None:
+            self._physical(a, "a spring")
+            if not (math.isfinite(stiffness) and 0 < stiffness <= 5000):
+                raise ValueError(f"spring stiffness must be in (0, 5000] N/m, got {stiffness}")
+            k = float(stiffness)
+            a.springs.append(physics.Spring(j, validate_vector(target, 3, "spring target (x, y, z)").double(), k,
+                                            2 * math.sqrt(k * 5.0)))  # about critically damped on a 5 kg limb
+        self._perturbed(a)
+
+    def throw(self, i: int, position, velocity, mass: float = 1.0, radius: float = 0.11) -> None:
+        """A ball from a world position with a world velocity (m/s), simulated with avatar i (physics
+        mode): it hits the body if its path meets it. An avatar keeps its newest MAX_BALLS."""
+        a = self._get(i)
+        self._physical(a, "a ball")
+        ball = physics.Ball(validate_vector(position, 3, "ball position").double(),
+                            validate_vector(velocity, 3, "ball velocity").double(), float(mass), float(radius))
+        ball.validate()
+        if float(ball.velocity.norm()) > 60:
+            raise ValueError(f"ball speed {float(ball.velocity.norm()):.0f} m/s is above 60 m/s")
+        a.pending_balls.append(ball)  # it enters where the next segment starts (after the cut)
+        self._perturbed(a)
+
+    def balls(self, i: int) -> list:
+        """The balls avatar i's simulation holds at the frame shown (physics.Ball, world)."""
+        return self._get(i).shown_balls
+
     # ------------------------------------------------------------ generation
     def advance(self) -> tuple[dict[int, torch.Tensor], list[int]]:
         """Show the next queued frame of every avatar that has one; the others hold their pose (a
@@ -414,6 +512,10 @@ class Crowd:
         for i, a in self.avatars.items():
             if a.queue:
                 a.state = a.queue.pop(0)
+                if a.ball_queue:
+                    a.shown_balls = a.ball_queue.pop(0)
+                a.frame += 1
+                a.forces = [f for f in a.forces if f[3] > a.frame]
             else:
                 stalled.append(i)
             shown[i] = a.state
@@ -428,13 +530,15 @@ class Crowd:
     def step_segment(self) -> dict[int, torch.Tensor]:
         """Generate one whole segment for every avatar from its current state (offline use)."""
         for a in self.avatars.values():
-            a.queue.clear()
+            self._trim(a, 0)
         self.refill(1)
         out = {}
         for a in self.avatars.values():
             out[a.id] = torch.stack(a.queue)
             a.state = a.queue[-1]
-            a.queue.clear()
+            a.shown_balls = list(a.balls)
+            a.frame += len(a.queue)
+            self._trim(a, 0)
         return out
 
     def refill(self, min_frames: int) -> int:
@@ -460,12 +564,26 @@ class Crowd:
                 a.pending_velocity = None
                 impulse[k] = True
             a.planned = self._plan(a)
+        N = self.motor.net.cfg.frames
+        jobs = []
+        for a in avs:
+            if not a.physics:
+                jobs.append(None)
+                continue
+            first = a.frame + len(a.queue) + 1  # the avatar frame of this segment's first new frame
+            forces = torch.zeros(N, 22, 3, dtype=torch.float64)
+            for j, f, start, end in a.forces:
+                lo, hi = max(start, first) - first, min(end, first + N) - first
+                if hi > lo:
+                    forces[lo:hi, j] += f.double()
+            # thrown balls stay pending until a segment with them commits (a cut one would lose them)
+            jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls)))
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, impulse_velocity=dv, impulse=impulse,
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
             control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
             adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[a.v_goal for a in avs],
-            facing_goal=[self._facing_goal(a) for a in avs])
+            facing_goal=[self._facing_goal(a) for a in avs], physics=jobs)
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
@@ -493,17 +611,58 @@ class Crowd:
         Rt = tf.R.transpose(-1, -2)
         x0c = apply_transform(batch.x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
         t1 = time.perf_counter()
-        # 2 condition embedding, 3 reverse diffusion with guidance
-        seg = self.sampler.sample(batch, x0c, tf, cancelled)
+        # 2 condition embedding, 3 reverse diffusion with guidance: one segment per avatar, and for
+        # an avatar in physics mode K candidates instead, all in one batch
+        phys = [k for k, job in enumerate(batch.physics) if job is not None]
+        plain = [k for k, job in enumerate(batch.physics) if job is None]
+        K = self.cfg.physics.candidates
+        rows = torch.tensor(plain + [k for k in phys for _ in range(K)], dtype=torch.long)
+        every = len(rows) == len(batch) and not phys
+        sub = batch if every else _subset(batch, rows)
+        seg_all = self.sampler.sample(sub, x0c if every else x0c[rows],
+                                      tf if every else Transform(tf.R[rows], tf.t[rows]), cancelled)
         t2 = time.perf_counter()
-        # test-time processing, ending in one body, in float32: in the canonical frame every value
-        # is within metres of the origin, and float64 made it 1.3-1.6x slower (bench, one run)
-        seg = run_stages(self.cfg, StageContext(x0c.float(), offsets.float(), batch, Rt.float()), seg.float())
-        # 4 back to world
-        seg_w = apply_transform(seg.double(), tf.R, tf.t).float()
+        seg_w = torch.empty(len(batch), seg_all.shape[1], STATE_DIM)
+        lengths, ball_frames = [seg_all.shape[1]] * len(batch), [[] for _ in range(len(batch))]
+        if plain:
+            # test-time processing, ending in one body, in float32: in the canonical frame every value
+            # is within metres of the origin, and float64 made it 1.3-1.6x slower (bench, one run)
+            p = torch.tensor(plain)
+            sub_p = batch if every else _subset(batch, p)
+            seg = run_stages(self.cfg, StageContext(x0c[p].float(), offsets[p].float(), sub_p, Rt[p].float()),
+                             seg_all[:len(plain)].float())
+            # 4 back to world
+            seg_w[p] = apply_transform(seg.double(), tf.R[p], tf.t[p]).float()
         t3 = time.perf_counter()
-        self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "total": t3 - t0, "batch": len(batch)}
+        if phys:
+            seg_w[torch.tensor(phys)], lengths_p, balls_p = self._simulate(batch, phys, seg_all[len(plain):], x0c, tf,
+                                                                            offsets)
+            for n, k in enumerate(phys):
+                lengths[k], ball_frames[k] = lengths_p[n], balls_p[n]
+        t4 = time.perf_counter()
+        batch.lengths, batch.ball_frames = lengths, ball_frames
+        self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "physics": t4 - t3,
+                        "total": t4 - t0, "batch": len(batch)}
         return seg_w
+
+    def _simulate(self, batch: SegmentBatch, phys: list[int], cands_c: torch.Tensor, x0c: torch.Tensor, tf: Transform,
+                  offsets: torch.Tensor):
+        """Physics mode: the K candidate segments of each such avatar (canonical, as the network
+        made them) as bodies in the world, then the solver through the segment (physics/simulate)."""
+        K, N = self.cfg.physics.candidates, cands_c.shape[1]
+        idx = torch.tensor(phys).repeat_interleave(K)
+        cands = solve_body(x0c[idx], cands_c.double(), offsets[idx])  # each candidate as one body
+        cands = apply_transform(cands, tf.R[idx], tf.t[idx]).reshape(len(phys), K, N, STATE_DIM)
+        p = torch.tensor(phys)
+        x0 = batch.x0[p].clone()
+        # a push (impulse velocity) is a blow on the particles: their velocities change at once
+        x0[:, SLICES["velocities"]] += batch.impulse_velocity[p].reshape(len(phys), 66)
+        jobs = [batch.physics[k] for k in phys]
+        bodies = prepare_bodies(offsets[p], self.cfg.physics)
+        frames, balls, _, lengths = physics.segment(bodies, x0, cands, self.cfg.physics, None,
+                                                    torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
+                                                    [j.balls for j in jobs])
+        return frames.float(), lengths, balls
 
     def stale(self, batch: SegmentBatch) -> bool:
         """Every avatar of the batch was cut or removed since it was prepared: its result would be
@@ -535,7 +694,13 @@ class Crowd:
                                     "was (%d such resets so far; is the checkpoint broken?)", i, faults[k], self.guard_resets)
                     self.reset(i)
                     continue
-                a.queue.extend(seg_w[k].unbind(0))
+                n = batch.lengths[k] if batch.lengths else len(seg_w[k])
+                a.queue.extend(seg_w[k, :n].unbind(0))
+                frames_balls = batch.ball_frames[k] if batch.ball_frames and batch.ball_frames[k] else [[]] * n
+                a.ball_queue.extend(list(b) for b in frames_balls[:n])
+                a.balls = list(a.ball_queue[-1]) if a.physics else []
+                if batch.physics[k] is not None:
+                    a.pending_balls = [b for b in a.pending_balls if not any(b is t for t in batch.physics[k].thrown)]
                 a.regenerating = False
                 if a.recut:
                     a.recut = False

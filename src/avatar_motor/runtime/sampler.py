@@ -37,7 +37,7 @@ def _subset(batch: SegmentBatch, rows: torch.Tensor) -> SegmentBatch:
     picked = {}
     for f in dataclasses.fields(batch):
         v = getattr(batch, f.name)
-        picked[f.name] = v[rows] if torch.is_tensor(v) else [v[int(k)] for k in rows]
+        picked[f.name] = v if v is None else v[rows] if torch.is_tensor(v) else [v[int(k)] for k in rows]
     return SegmentBatch(**picked)
 
 

@@ -18,6 +18,15 @@ from .processing import (fuse_velocities, inertialize, lock_feet, smooth_segment
 
 
 @dataclass
+class PhysicsJob:
+    """What acts on an avatar in physics mode over its segment, from its first new frame."""
+    forces: torch.Tensor  # (N, 22, 3) world N at each frame (timed forces and pushes held)
+    springs: list  # physics.Spring
+    balls: list  # physics.Ball, as of the segment's initial state
+    thrown: list  # those of them thrown since the last segment (pending until this one commits)
+
+
+@dataclass
 class SegmentBatch:
     """One segment to generate for each of B avatars: a snapshot taken under the owner's lock,
     so generation can run outside it. World frame unless said otherwise."""
@@ -34,6 +43,11 @@ class SegmentBatch:
     adaptors: list  # index of the adaptor (Sampler.adaptors) that steers each avatar, or None
     v_goal: list  # world (3,) m/s or None
     facing_goal: list  # world unit (3,) or None
+    physics: list  # a PhysicsJob for an avatar in physics mode, else None
+    # what compute() found, for commit: how many frames of each row to queue (a physics segment
+    # stops early to resample after a hit), and the balls of each frame [row][frame][ball]
+    lengths: list | None = None
+    ball_frames: list | None = None
 
     def __len__(self) -> int:
         return len(self.avatars)

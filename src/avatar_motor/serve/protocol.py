@@ -67,6 +67,16 @@ _FIELDS = {
     "label": ({"avatar": lambda v: _int(v, "avatar"), "label": lambda v: None if v is None else _str(v, "label")},
               {"scale": lambda v: _num(v, "scale", 0, 10)}),
     "reset": ({}, {"avatar": lambda v: _int(v, "avatar")}),
+    # physics mode (DROP): the body is simulated, the model its control
+    "physics": ({"avatar": lambda v: _int(v, "avatar"), "on": lambda v: _bool(v, "on")}, {}),
+    "force": ({"avatar": lambda v: _int(v, "avatar"), "joint": lambda v: _joint(v),
+               "force": lambda v: _vec(v, 3, "force (N)", -5000, 5000), "seconds": lambda v: _num(v, "seconds", 0.01, 10)}, {}),
+    "spring": ({"avatar": lambda v: _int(v, "avatar"), "joint": lambda v: _joint(v),
+                "target": lambda v: None if v is None else _vec(v, 3, "target (x, y, z m)", -1000, 1000)},
+               {"stiffness": lambda v: _num(v, "stiffness (N/m)", 1, 5000)}),
+    "ball": ({"avatar": lambda v: _int(v, "avatar"), "position": lambda v: _vec(v, 3, "position (x, y, z m)", -1000, 1000),
+              "velocity": lambda v: _vec(v, 3, "velocity (m/s)", -60, 60)},
+             {"mass": lambda v: _num(v, "mass (kg)", 0.01, 100), "radius": lambda v: _num(v, "radius (m)", 0.02, 1)}),
     "seed": ({"seed": lambda v: _int(v, "seed")}, {}),
 }
 COMMANDS = sorted(_FIELDS)
@@ -75,6 +85,12 @@ COMMANDS = sorted(_FIELDS)
 def _str(v, what: str) -> str:
     if not isinstance(v, str) or not 0 < len(v) <= 200:
         raise ProtocolError(f"{what} must be a non-empty string")
+    return v
+
+
+def _bool(v, what: str) -> bool:
+    if not isinstance(v, bool):
+        raise ProtocolError(f"{what} must be true or false, got {v!r}"[:200])
     return v
 
 

@@ -24,7 +24,7 @@ from aiohttp.abc import AbstractAccessLogger
 
 from ..body.motion_state import FPS
 from . import protocol as P
-from .world import CommandError, World, frames_to_keep, measure_capacity
+from .world import CommandError, World, measure_capacity
 
 log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
@@ -374,12 +374,11 @@ class Server:
             try:
                 if self.world.needs_generation():
                     self.world.generate()
-                    # the frames a cut keeps follow how long a segment takes now (this machine's
-                    # speed varies): as many as cover one, at most MAX_KEEP (133 ms). One more
-                    # frame measured: reaction through the socket 133 ms instead of 100 (one core)
+                    # the frames a cut keeps follow how long a batch takes now (this machine's
+                    # speed varies) and where the clock stands (World.frames_to_keep_now)
                     t = crowd.timings.get("total", 0.0)
                     ema = t if ema is None else 0.9 * ema + 0.1 * t
-                    crowd.keep_on_cut = frames_to_keep(ema)
+                    self.world.segment_seconds = ema  # a command's cut keeps what this covers
                 else:
                     time.sleep(0.002)
             except Exception:  # never let one bad batch kill the world
@@ -392,6 +391,7 @@ class Server:
         window: list[float] = []
         last_stats = 0.0
         last_behind = 0
+        had_balls = False
         while True:
             now = time.perf_counter()
             if now < next_t:
@@ -400,12 +400,20 @@ class Server:
             if time.perf_counter() - next_t > 1.0:  # fell far behind (machine paused): resync
                 next_t = time.perf_counter()
             states = self.world.tick()
+            self.world.next_tick = next_t  # read by a command's cut (World.frames_to_keep_now)
             ids, J, Q = self.world.frame_payload(states)
             J, Q = J.numpy(), Q.numpy()
             frames = {"binary": P.encode_frame_binary(self.world.frame, ids, J, Q),
                       "json": P.encode_frame_json(self.world.frame, ids, J, Q) if any(c.format == "json" for c in self.clients) else ""}
             for c in list(self.clients):
                 c.offer(frames[c.format])
+            with self.world.lock:
+                balls = self.world.balls_payload()
+            if balls or had_balls:  # once more when the last one is gone, so clients clear them
+                msg = json.dumps({"type": "balls", "frame": self.world.frame, "balls": balls})
+                for c in list(self.clients):
+                    c.offer(msg)
+            had_balls = bool(balls)
             window.append(time.perf_counter())
             window = window[-60:]
             if len(window) > 1:

@@ -55,8 +55,8 @@ class World:
         self.lock = threading.RLock()
         self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptors)
         # frames kept when a command cuts an avatar's queue, shown while its new segment is made
-        # (Crowd._changed): as many frames as a segment takes to make, so a command shows within
-        # 33-133 ms; the server sets it from the measured segment time, replays from the script
+        # (Crowd._changed): served, set per command from the clock (frames_to_keep_now); offline
+        # and in replays, from the script
         self.crowd.keep_on_cut = 2
         self.frame = 0
         self.targets: dict[int, Target] = {}
@@ -65,15 +65,22 @@ class World:
         self.events: deque[dict] = deque(maxlen=EVENTS_KEPT)
         self.events_total = 0
         self.stalls = 0  # ticks at which some avatar had no frame ready
+        # the server's clock: when its next tick runs (time.perf_counter), how long a batch takes
+        # now, and since when the worker's batch in flight runs; None offline (no wall clock)
+        self.next_tick: float | None = None
+        self.segment_seconds: float | None = None
+        self.generating_since: float | None = None
 
     # ------------------------------------------------------------ commands
     def apply(self, cmd: dict, log: bool = True) -> dict:
         """Carry out one validated command; returns the ack payload. Raises CommandError."""
         kind = cmd["type"]
         with self.lock:
+            if self.next_tick is not None and self.segment_seconds is not None:
+                self.crowd.keep_on_cut = self.frames_to_keep_now(time.perf_counter())
             res = getattr(self, f"_cmd_{kind}")(cmd)
-            if log:
-                self.events.append({"frame": self.frame, "t": self.frame / FPS, "cmd": cmd})
+            if log:  # with the frames its cut kept, so a replay cuts as this world did
+                self.events.append({"frame": self.frame, "t": self.frame / FPS, "cmd": cmd, "keep": self.crowd.keep_on_cut})
                 self.events_total += 1
         return res or {}
 
@@ -145,6 +152,33 @@ class World:
             self.crowd.reset(i)
             self.targets.pop(i, None)
 
+    def _physics(self, call, *args, **kw):
+        try:
+            call(*args, **kw)
+        except ValueError as e:
+            raise CommandError(str(e)) from None
+
+    def _cmd_physics(self, cmd):
+        self._physics(self.crowd.set_physics, self._avatar(cmd), cmd["on"])
+
+    def _cmd_force(self, cmd):
+        self._physics(self.crowd.apply_force, self._avatar(cmd), cmd["joint"], cmd["force"], cmd["seconds"])
+
+    def _cmd_spring(self, cmd):
+        self._physics(self.crowd.set_spring, self._avatar(cmd), cmd["joint"], cmd["target"], cmd.get("stiffness", 400.0))
+
+    def _cmd_ball(self, cmd):
+        self._physics(self.crowd.throw, self._avatar(cmd), cmd["position"], cmd["velocity"], cmd.get("mass", 1.0),
+                      cmd.get("radius", 0.11))
+
+    def balls_payload(self) -> list[dict]:
+        """The balls shown now, each with the avatar it is simulated with (for the stream)."""
+        out = []
+        for i in self.crowd.ids():
+            for b in self.crowd.balls(i):
+                out.append({"avatar": i, "position": [round(float(v), 4) for v in b.position], "radius": b.radius})
+        return out
+
     def _cmd_seed(self, cmd):
         """Reseed every avatar's noise (and those spawned later) for a reproducible continuation."""
         self.crowd.reseed(int(cmd["seed"]))
@@ -164,6 +198,19 @@ class World:
         if cur is None or not torch.equal(cur[[0, 2]], v):
             self.crowd.set_goal(i, v.tolist())  # the crowd cuts only for a noticeable change
 
+    def frames_to_keep_now(self, now: float) -> int:
+        """The frames a command's cut keeps at time `now`: as many as the clock shows before the
+        new segment can be ready (the batch in flight first, then one batch, with CUT_MARGIN). None
+        when it is ready before the next tick: the command then shows at that tick (measured: a
+        fixed frame kept put the reaction through the socket at 67 ms, one avatar, 2 cores)."""
+        period = 1.0 / FPS
+        ready = now + self.segment_seconds * (1.0 + CUT_MARGIN[0]) + CUT_MARGIN[1]
+        if self.generating_since is not None:
+            ready += max(0.0, self.generating_since + self.segment_seconds - now)
+        if ready <= self.next_tick:
+            return 0
+        return min(MAX_KEEP, math.ceil((ready - self.next_tick) / period))
+
     def needs_generation(self) -> bool:
         with self.lock:
             return self.crowd.needs_frames(LOOKAHEAD)
@@ -175,18 +222,21 @@ class World:
             # phase, one batch per segment instead of many small ones each waiting on the other
             # (a 1-hour soak, 8 avatars on one core, before: 4 % of ticks had an avatar stalled)
             job = self.crowd.prepare(LOOKAHEAD + self.motor.net.cfg.frames)
-        if job is None:
-            return
+            if job is None:
+                return
+            self.generating_since = time.perf_counter()
         try:  # a command that cuts every avatar of the batch stops it: the cut segment starts sooner
             seg = self.crowd.compute(job, cancelled=lambda: self.crowd.stale(job))
         except BaseException as e:
             with self.lock:
                 self.crowd.abandon(job)
+                self.generating_since = None
             if isinstance(e, Cancelled):
                 return
             raise
         with self.lock:
             self.crowd.commit(job, seg)
+            self.generating_since = None
 
     def tick(self) -> dict[int, torch.Tensor]:
         """Advance the clock one frame: every avatar with a frame ready shows it (the others hold
@@ -209,6 +259,9 @@ class World:
         k = 0
         for _ in range(frames):
             while k < len(script) and script[k]["frame"] <= self.frame:
+                keep = script[k].get("keep")
+                if keep is not None:  # the frames the recorded server's cut kept
+                    self.crowd.keep_on_cut = keep
                 self.apply(P.validate_command(script[k]["cmd"]))
                 k += 1
             while self.needs_generation():
@@ -255,6 +308,9 @@ class World:
 
 
 MAX_KEEP = 4  # frames a cut keeps at most (133 ms)
+# a batch may run this much longer than the recent average (fraction, seconds) before a command's
+# cut stalls a frame: this machine's segment times vary by 20-30 % between runs
+CUT_MARGIN = (0.3, 0.004)
 
 
 def frames_to_keep(seconds: float, cap: int = MAX_KEEP) -> int:
@@ -274,7 +330,7 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: 
 
     def seconds(n: int) -> float:
         job = crowd.prepare(10**9)  # every avatar, the first n of them timed
-        job = dataclasses.replace(job, **{k: v[:n] for k, v in vars(job).items()})
+        job = dataclasses.replace(job, **{k: v[:n] for k, v in vars(job).items() if v is not None})
         t0 = time.perf_counter()
         crowd.compute(job)
         return time.perf_counter() - t0

@@ -1,0 +1,154 @@
+"""Segments of physical motion: the solver (solver.py) stepped frame by frame, its kinematic energy
+the motion model's candidate segments, with what acts on the bodies from outside: forces held at a
+joint, springs pulling a joint toward a point (the studio's drag), and balls.
+
+The runtime samples K candidate segments from the frame a physics segment starts at (the model's
+prediction of what this body does next, K ways) and hands them in; frame i's candidates are the
+samples' frame i (DROP samples one frame ahead; a segment model gives 15 at once, so the manifold
+for frame i is conditioned on the segment's start, and a perturbation cuts and resamples).
+
+Balls are rigid spheres under gravity that bounce on the ground. A ball meets a joint's collision
+sphere (COLLISION_RADIUS) when their centres come within the two radii during the frame (swept,
+so a fast ball does not pass through a wrist between two frames). The hit is an impulse along
+the line of centres, shared as a collision of the ball with the part of the body around the hit
+joint (the joints within HIT_REACH of it, their masses; the rest of the body follows through the
+bones in the solve), with restitution BALL_RESTITUTION; the body takes it as a force over the frame.
+DROP (§8) used penalty forces from penetration depth; at 30 frames/s a 10 m/s ball travels 33 cm
+between frames, deeper than any joint sphere, so the penalty either misses it or explodes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
+from .solver import COLLISION_RADIUS, H, Bodies, Candidates, PhysicsConfig, pose_from_particles, step
+
+BALL_RESTITUTION = 0.3  # the ball keeps this share of its speed along the hit (a leather ball on a body)
+GROUND_RESTITUTION = 0.5  # and this on the ground
+HIT_REACH = 0.3  # m: the joints around a hit one that take the blow with it
+
+
+@dataclass
+class Ball:
+    """A projectile in the world frame."""
+    position: torch.Tensor  # (3,) m
+    velocity: torch.Tensor  # (3,) m/s
+    mass: float  # kg
+    radius: float  # m
+
+    def validate(self) -> None:
+        for name in ("position", "velocity"):
+            t = getattr(self, name)
+            if t.shape != (3,) or not torch.isfinite(t).all():
+                raise ValueError(f"ball {name} must be 3 finite numbers, got {t.tolist()}")
+        if not (0.01 <= self.mass <= 100.0):
+            raise ValueError(f"ball mass must be 0.01..100 kg, got {self.mass}")
+        if not (0.02 <= self.radius <= 1.0):
+            raise ValueError(f"ball radius must be 0.02..1 m, got {self.radius}")
+
+
+@dataclass
+class Spring:
+    """A joint pulled toward a world point: force = stiffness (target - joint) - damping v_joint."""
+    joint: int
+    target: torch.Tensor  # (3,) m
+    stiffness: float = 400.0  # N/m
+    damping: float = 40.0  # N s/m
+
+
+def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Ball, g: float) -> tuple[torch.Tensor, Ball, bool]:
+    """One frame of a ball against one body: joints x (22, 3), velocities v (22, 3), masses (22,).
+    Returns the force (22, 3) the body takes over the frame, the ball a frame later, and whether
+    it hit."""
+    f = torch.zeros_like(x)
+    p, u = ball.position.to(x.dtype), ball.velocity.to(x.dtype)
+    # the swept test: when during the frame the ball's sphere first touches each joint's, both
+    # moving straight: |rel_p + t rel_v| = r_joint + r_ball, the smaller root
+    rel_p, rel_v = p - x, u - v  # (22, 3)
+    reach = COLLISION_RADIUS.to(x.dtype) + ball.radius
+    qa = (rel_v * rel_v).sum(-1).clamp_min(1e-12)
+    qb = (rel_p * rel_v).sum(-1)
+    qc = (rel_p * rel_p).sum(-1) - reach**2
+    disc = qb**2 - qa * qc
+    t = torch.where(qc <= 0, torch.zeros_like(qc), (-qb - disc.clamp_min(0).sqrt()) / qa)
+    touches = (disc >= 0) & (t >= 0) & (t <= H) & (qb < 0)  # and closing in
+    hit_any = bool(touches.any())
+    if hit_any:
+        hit = int(torch.where(touches, t, torch.full_like(t, float("inf"))).argmin())
+        s = float(t[hit])
+        at = rel_p[hit] + s * rel_v[hit]
+        n = at / at.norm().clamp_min(1e-9)  # from the joint to the ball at contact
+        near = (x - x[hit]).norm(dim=-1) <= HIT_REACH
+        m_body = float(masses[near].sum())
+        closing = -float((rel_v[hit] * n).sum())
+        J = (1 + BALL_RESTITUTION) * max(closing, 0.0) / (1 / ball.mass + 1 / m_body)  # N s, along -n on the body
+        f[hit] = -J * n / H
+        p = p + s * u  # to the contact, then away with the new velocity
+        u = u + (J / ball.mass) * n
+        p = p + (H - s) * u
+    else:
+        p = p + H * u
+    u = u - torch.tensor([0.0, g * H, 0.0], dtype=x.dtype)
+    if float(p[1]) < ball.radius:  # the ground
+        p[1] = ball.radius
+        if float(u[1]) < 0:
+            u[1] = -GROUND_RESTITUTION * u[1]
+            u[[0, 2]] *= 0.8
+    return f, Ball(p.to(ball.position.dtype), u.to(ball.velocity.dtype), ball.mass, ball.radius), hit_any
+
+
+def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsConfig | None = None, rom=None,
+            forces: torch.Tensor | None = None, springs: list[list[Spring]] | None = None,
+            balls: list[list[Ball]] | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int]]:
+    """Physical frames for B bodies from their states x0 (B, 267) (world): candidates (B, K, N, 267)
+    one-body world frames sampled from the model (frame i of each is the kinematic energy's set
+    for frame i); forces (B, N, 22, 3) N per frame, or None; springs and balls: per body, lists.
+    Returns the frames (B, N, 267) as one body each (rotations: swing from the solved bones, twist
+    from the candidate chosen; joints: FK of them; velocities: differences), each body's balls
+    after each frame [body][frame][ball], the index (B, N) of the candidate chosen at each frame,
+    and each body's length: the frames to keep before sampling again (cfg.resample_distance; a
+    hit ends the segment after the frame it lands in). All N frames are made either way."""
+    cfg = cfg or PhysicsConfig()
+    B, K, N, _ = cands.shape
+    x = joints_of(x0.double())
+    v = velocities_of(x0.double())
+    cu = unpack(cands.double())
+    springs = springs or [[] for _ in range(B)]
+    balls = [list(b) for b in (balls or [[] for _ in range(B)])]
+    out_root, out_rot, out_local, out_J, chosen, ball_frames = [], [], [], [], [], [[] for _ in range(B)]
+    lengths = [N] * B
+    for i in range(N):
+        hit = [False] * B
+        f = torch.zeros(B, 22, 3, dtype=torch.float64) if forces is None else forces[:, i].double().clone()
+        for b in range(B):
+            for sp in springs[b]:
+                f[b, sp.joint] += sp.stiffness * (sp.target.double() - x[b, sp.joint]) - sp.damping * v[b, sp.joint]
+            moved = []
+            for ball in balls[b]:
+                fb, ball, struck = _ball_hits(x[b], v[b], bodies.masses[b], ball, cfg.gravity)
+                f[b] += fb
+                hit[b] |= struck
+                moved.append(ball)
+            balls[b] = moved
+            ball_frames[b].append(list(moved))
+        c = Candidates(cu.joints[:, :, i], cu.root_rot[:, :, i], cu.local_rot[:, :, i])
+        solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom)
+        rows = torch.arange(B)
+        off = ((solved - c.joints[rows, k]) ** 2).sum(-1)  # (B, 22)
+        apart = ((off * bodies.masses).sum(-1) / bodies.masses.sum(-1)).sqrt()
+        for b in range(B):
+            if lengths[b] == N and (hit[b] or float(apart[b]) > cfg.resample_distance):
+                lengths[b] = i + 1
+        root_pos, root_rot, local, J = pose_from_particles(solved, c.root_rot[rows, k], c.local_rot[rows, k], bodies.offsets)
+        out_root.append(root_pos)
+        out_rot.append(root_rot)
+        out_local.append(local)
+        out_J.append(J)
+        chosen.append(k)
+        # the next frame starts from the body that is shown (FK of its rotations)
+        x, v = J, (J - x) / H
+    J = torch.stack(out_J, 1)
+    vel = finite_velocities(J, FPS, first=(J[:, 0] - joints_of(x0.double())) * FPS)
+    frames = pack(torch.stack(out_root, 1), torch.stack(out_rot, 1), torch.stack(out_local, 1), J, vel)
+    return frames, ball_frames, torch.stack(chosen, 1), lengths
