@@ -116,6 +116,85 @@ def test_studio_offers_the_labels_of_its_adaptors(tmp_path):
         assert world.crowd.avatars[0].label is None
 
 
+@needs_chromium
+def test_shipped_family_in_the_studio():
+    """What `make studio` serves out of the box: the default model with the adaptors shipped in
+    models/ for its base (found by fingerprint, as `serve` finds them). The studio shows the
+    action and style labels; choosing "bow" bends the body (the head comes down toward the
+    pelvis); the magnet placed on the ground walks the pelvis to it (the reaching adaptor)."""
+    from avatar_motor.body.skeleton import JOINT_INDEX
+    from avatar_motor.cli import DEFAULT_MODEL, MODELS
+    from avatar_motor.model.adaptor import default_adaptors
+    from avatar_motor.model.checkpoint import load_checkpoint
+
+    motor = load_checkpoint(DEFAULT_MODEL)
+    adaptors = default_adaptors(motor, MODELS)
+    controls = sorted(ad.cfg.control for ad in adaptors)
+    assert controls == ["label", "label", "target"], (
+        f"models/ should ship an actions, a styles and a reaching adaptor for {motor.name}'s base; found "
+        f"{[(ad.name, ad.cfg.control) for ad in adaptors]}")
+    actions = next(ad for ad in adaptors if "bow" in ad.cfg.labels)
+    reach = next(ad for ad in adaptors if ad.cfg.control == "target")
+    world = World(motor, RuntimeConfig(), seed=0, adaptors=adaptors)
+    head = JOINT_INDEX["head"]
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+        groups = page.eval_on_selector_all("#labels .group", "gs => gs.map(g => g.dataset.adaptor)")
+        assert sorted(groups) == sorted(ad.name for ad in adaptors if ad.cfg.control == "label")
+        assert f"reaching adaptor ({reach.name})" in page.text_content("#magnet-mode")
+
+        from avatar_motor.body.motion_state import joints_of
+
+        def lean() -> float:  # head above pelvis (m) in the frame the world streams (the page is slow to ask)
+            with world.lock:
+                J = joints_of(world.crowd.state(0))
+            return float(J[head, 1] - J[0, 1])
+
+        def heights(seconds: float, until=None) -> list[float]:
+            out, end = [], time.time() + seconds
+            while time.time() < end and not (until and until(out)):
+                out.append(lean())
+                time.sleep(0.02)
+            return out
+
+        free = heights(2.0)
+        press(page, f"#labels .group[data-adaptor='{actions.name}'] button[data-label='bow']")
+        deadline = time.time() + 15
+        while time.time() < deadline and world.crowd.avatars[0].label is None:
+            time.sleep(0.05)
+        assert world.crowd.avatars[0].adaptor == world.crowd.adaptors.index(actions)
+        # a standing body carries its head about 0.6 m above the pelvis; a bow brings it down
+        bowed = heights(10.0, until=lambda h: h and min(h) < min(free) - 0.15)
+        assert min(bowed) < min(free) - 0.1, (min(free), min(bowed))
+        press(page, "#labels button[data-label='']")
+
+        # the magnet: placed 2.5 m in front of the avatar, on the ground, with the mouse
+        p = page.evaluate("window.studio.pelvis(0)")
+        for dx, dz in ((2.5, 0.0), (-2.5, 0.0), (0.0, 2.5), (0.0, -2.5), (1.8, 1.8), (-1.8, 1.8), (1.8, -1.8), (-1.8, -1.8)):
+            goal = (p[0] + dx, p[2] + dz)
+            x, y = page.evaluate(f"window.studio.screenOfPoint({goal[0]}, 0, {goal[1]})")
+            if 20 < x < 780 and 140 < y < 640:  # on the ground in view, clear of the HUD, the panel and the help
+                break
+        else:
+            raise AssertionError("no point 2.5 m from the avatar is in view")
+        press(page, "#magnet")
+        page.mouse.click(x, y)
+        deadline = time.time() + 15
+        while time.time() < deadline and world.crowd.avatars[0].target is None:
+            time.sleep(0.05)
+        target = world.crowd.avatars[0].target
+        assert target is not None and world.crowd.avatars[0].adaptor == world.crowd.adaptors.index(reach)
+        start = ((p[0] - float(target[0])) ** 2 + (p[2] - float(target[1])) ** 2) ** 0.5
+        assert start > 1.5, (p, target)  # the click landed where it was aimed, not under the body
+        deadline = time.time() + 12
+        while time.time() < deadline:  # walking there takes a few seconds
+            time.sleep(1.0)
+            q = page.evaluate("window.studio.pelvis(0)")
+            if ((q[0] - float(target[0])) ** 2 + (q[2] - float(target[1])) ** 2) ** 0.5 < 0.5:
+                break
+        end = ((q[0] - float(target[0])) ** 2 + (q[2] - float(target[1])) ** 2) ** 0.5
+        assert end < 0.5 * start and end < 0.8, (start, end)
+
+
 @pytest.mark.slow  # 1.5-4.5 min: the page draws 3-4 frames/s in software GL on 2 busy cores
 @needs_chromium
 def test_physics_in_the_studio(tmp_path, artifacts):
