@@ -427,7 +427,7 @@ renderer.domElement.addEventListener("pointermove", (ev) => {
   if (!p) return;
   if (state.physics.has(drag.avatar) && performance.now() - lastSpring > 60) {  // at most ~16 updates a second
     lastSpring = performance.now();
-    send({ type: "spring", avatar: drag.avatar, joint: drag.joint, target: p.toArray().map((x) => +x.toFixed(3)) });
+    send({ type: "spring", avatar: drag.avatar, joint: drag.joint, target: p.toArray().map((x) => +x.toFixed(3)), stiffness: 1500 });
   }
   const d = p.clone().sub(drag.start);
   arrow.position.copy(drag.start);
