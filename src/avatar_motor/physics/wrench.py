@@ -20,10 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..body.motion_state import FPS
 from ..body.skeleton import NUM_JOINTS
-
-H = 1.0 / FPS
+from .solver import H
 PYRAMID_EDGES = 4  # friction cone approximated by a 4-sided pyramid (Zheng and Yamane 2013)
 
 

@@ -412,9 +412,7 @@ class Crowd:
     def push(self, i: int, joint: int | str, velocity, frame: str = "world") -> None:
         """Add a velocity (m/s) to one joint: a poke from a user. frame 'world' or 'body'."""
         a = self._get(i)
-        j = JOINT_NAMES.index(joint) if isinstance(joint, str) and joint in JOINT_NAMES else joint
-        if not isinstance(j, int) or not 0 <= j < 22:
-            raise ValueError(f"unknown joint {joint!r}; use an index 0..21 or one of {JOINT_NAMES}")
+        j = self._joint(joint)
         v = validate_vector(velocity, 3, "push velocity")
         if frame == "body":
             v = _body_to_world(a) @ v
