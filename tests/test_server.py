@@ -196,6 +196,10 @@ def test_a_command_keeps_the_frames_the_clock_shows_before_its_segment(tmp_path)
     assert w.frames_to_keep_now(now) == MAX_KEEP
     w.segment_seconds, w.next_tick = 0.010, now + ready + 2.5 * period
     assert w.frames_to_keep_now(now) == 0
+    # the clock may tick later (Pacer.allowance): a segment ready within it keeps none
+    w.next_tick, w.tick_allowance = now + ready - 0.001, 0.002
+    assert w.frames_to_keep_now(now) == 0
+    w.tick_allowance = 0.0
 
     # through apply: the clock's next tick far ahead keeps none, just passed keeps one
     import time as _time
@@ -204,6 +208,9 @@ def test_a_command_keeps_the_frames_the_clock_shows_before_its_segment(tmp_path)
         w.next_tick = _time.perf_counter() + ahead
         w.apply({"type": "impulse", "avatar": 0, "preset": "forward_run"})
         assert w.events[-1]["keep"] == keep and len(w.crowd.avatars[0].queue) == keep
+        assert w.cut_pending == (keep == 0)  # an emptied queue: the clock ticks when it refills
+        w.tick()
+        assert not w.cut_pending
     # a replay takes each event's keep
     script = [dict(e, frame=e["frame"] + 5) for e in w.events]
     r = World(tiny_motor(tmp_path), seed=0)
@@ -211,6 +218,75 @@ def test_a_command_keeps_the_frames_the_clock_shows_before_its_segment(tmp_path)
     r.crowd.keep_on_cut = 3
     r.run_offline(script[0]["frame"] + 1, script[:1])
     assert r.events[-1]["keep"] == 0
+
+
+def _run_pacer(pacer, events, until, ready_at=lambda t: True, cut_at=()):
+    """Drive a Pacer on a virtual clock: wake at each `events` time (segment commits) or when its
+    wait ends; returns the tick times. cut_at: times at which a command empties a queue."""
+    from avatar_motor.serve.world import Pacer  # noqa: F401
+    now, ticks, cut = pacer.next_t, [], False
+    pending_cuts, wakes = sorted(cut_at), sorted(events)
+    while now < until:
+        while pending_cuts and pending_cuts[0] <= now:
+            pending_cuts.pop(0)
+            cut = True
+        w = pacer.wait(now, ready_at(now), cut)
+        if w <= 0:
+            ticks.append(now)
+            pacer.ticked(now)
+            cut = False
+            continue
+        later = [t for t in wakes + pending_cuts if t > now]
+        now = min([now + w] + later)
+    return ticks
+
+
+def test_the_pacer_shows_a_ready_segment_at_once_and_keeps_the_rate():
+    """The served clock (Pacer): undisturbed it ticks every period; a command whose segment is ready
+    before its tick shows early (never sooner than min_interval after the last), one not ready when
+    due waits for it, each within max_drift of the nominal schedule; the moved phase drifts back,
+    so over time the rate is the clock's whatever the commands do."""
+    from avatar_motor.serve.world import Pacer
+    period = 1 / 30
+    p = Pacer.start(0.0, period)
+    ticks = _run_pacer(p, [], 0.99)
+    assert len(ticks) == 30 and max(abs(t - k * period) for k, t in enumerate(ticks)) < 1e-9
+
+    # a command at 0.501 s, its segment committed 20 ms later: shown then, not at 0.5333
+    p = Pacer.start(0.0, period)
+    ready = lambda t: not (0.501 <= t < 0.521)  # the queue is empty from the cut until the commit
+    ticks = _run_pacer(p, [0.521], 3.0, ready, cut_at=[0.501])
+    assert any(abs(t - 0.521) < 1e-9 for t in ticks)
+    gaps = [b - a for a, b in zip(ticks, ticks[1:])]
+    assert min(gaps) >= p.min_interval - 1e-9 and max(gaps) <= period + p.correction + 1e-9
+    assert abs(ticks[-1] - 90 * period) < 0.002 and abs(len(ticks) - 90) <= 1  # back on schedule
+
+    # a segment committed 30 ms after a command just before a tick: that tick waits for it
+    p = Pacer.start(0.0, period)
+    ready = lambda t: not (0.53 <= t < 0.56)
+    ticks = _run_pacer(p, [0.56], 3.0, ready, cut_at=[0.53])
+    assert any(abs(t - 0.56) < 1e-9 for t in ticks) and not any(0.5334 < t < 0.56 for t in ticks)
+    assert abs(len(ticks) - 90) <= 1
+
+    # frames never ready (generation behind): ticks come late by max_drift at most, at the rate
+    p = Pacer.start(0.0, period)
+    ticks = _run_pacer(p, [], 2.0, lambda t: False)
+    assert all(t - k * period <= p.max_drift + 1e-9 for k, t in enumerate(ticks))
+    assert abs(len(ticks) - 60) <= 1
+
+    # a command every tick, each ready at once: the rate holds, and a tick moves at most once in
+    # `calm` ticks (a steady stream stays steady under a 60-Hz stick)
+    p = Pacer.start(0.0, period)
+    cuts = [k * period + 0.001 for k in range(90)]
+    ticks = _run_pacer(p, [], 3.0, cut_at=cuts)
+    assert abs(len(ticks) - 90) <= 2 and all(t - k * period >= -p.max_drift - 1e-9 for k, t in enumerate(ticks))
+    moved = [k for k, (a, b) in enumerate(zip(ticks, ticks[1:])) if abs(b - a - period) > p.correction + 1e-9]
+    assert 3 <= len(moved) <= 90 // p.calm + 1 and min(b - a for a, b in zip(moved, moved[1:])) >= p.calm
+
+    p = Pacer.start(0.0, period)  # a machine pause: start over instead of racing to catch up
+    p.ticked(0.0)
+    p.ticked(5.0)
+    assert p.wait(5.01, True, False) > 0 and p.next_t > 5.0
 
 
 def test_record_and_events_downloads(server):

@@ -24,7 +24,7 @@ from aiohttp.abc import AbstractAccessLogger
 
 from ..body.motion_state import FPS
 from . import protocol as P
-from .world import CommandError, World, measure_capacity
+from .world import CommandError, Pacer, World, measure_capacity
 
 log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
@@ -354,6 +354,7 @@ class Server:
         # full collection during a message flood otherwise held the clock for up to 0.46 s
         gc.collect()
         gc.freeze()
+        self.loop, self.wake = loop, asyncio.Event()  # the worker wakes the clock when a segment commits
         self.worker = threading.Thread(target=self._generation_worker, daemon=True, name="generation")
         self.worker.start()
         self.clock = asyncio.create_task(self._clock())
@@ -379,6 +380,7 @@ class Server:
                     t = crowd.timings.get("total", 0.0)
                     ema = t if ema is None else 0.9 * ema + 0.1 * t
                     self.world.segment_seconds = ema  # a command's cut keeps what this covers
+                    self.loop.call_soon_threadsafe(self.wake.set)
                 else:
                     time.sleep(0.002)
             except Exception:  # never let one bad batch kill the world
@@ -386,21 +388,26 @@ class Server:
                 time.sleep(0.1)
 
     async def _clock(self) -> None:
-        period = 1.0 / FPS
-        next_t = time.perf_counter()
+        pacer = Pacer.start(time.perf_counter())
         window: list[float] = []
         last_stats = 0.0
         last_behind = 0
         had_balls = False
         while True:
-            now = time.perf_counter()
-            if now < next_t:
-                await asyncio.sleep(next_t - now)
-            next_t += period
-            if time.perf_counter() - next_t > 1.0:  # fell far behind (machine paused): resync
-                next_t = time.perf_counter()
+            while True:  # until the pacer says tick: its time, or a command's segment ready early
+                self.wake.clear()  # before looking, so a commit from now on wakes the wait below
+                now = time.perf_counter()
+                wait = pacer.wait(now, self.world.frames_ready(), self.world.cut_pending)
+                if wait <= 0:
+                    break
+                try:
+                    await asyncio.wait_for(self.wake.wait(), wait)
+                except asyncio.TimeoutError:
+                    pass
             states = self.world.tick()
-            self.world.next_tick = next_t  # read by a command's cut (World.frames_to_keep_now)
+            pacer.ticked(now)
+            # read by a command's cut (World.frames_to_keep_now)
+            self.world.next_tick, self.world.tick_allowance = pacer.next_t, pacer.allowance()
             ids, J, Q = self.world.frame_payload(states)
             J, Q = J.numpy(), Q.numpy()
             frames = {"binary": P.encode_frame_binary(self.world.frame, ids, J, Q),

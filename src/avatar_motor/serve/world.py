@@ -70,6 +70,8 @@ class World:
         self.next_tick: float | None = None
         self.segment_seconds: float | None = None
         self.generating_since: float | None = None
+        self.tick_allowance = 0.0  # how much later than next_tick the clock may still tick (Pacer)
+        self.cut_pending = False  # a command emptied a queue (kept no frame): the clock ticks when it refills
 
     # ------------------------------------------------------------ commands
     def apply(self, cmd: dict, log: bool = True) -> dict:
@@ -79,6 +81,8 @@ class World:
             if self.next_tick is not None and self.segment_seconds is not None:
                 self.crowd.keep_on_cut = self.frames_to_keep_now(time.perf_counter())
             res = getattr(self, f"_cmd_{kind}")(cmd)
+            if self.crowd.keep_on_cut == 0 and self.crowd.needs_frames(1):
+                self.cut_pending = True
             if log:  # with the frames its cut kept, so a replay cuts as this world did
                 self.events.append({"frame": self.frame, "t": self.frame / FPS, "cmd": cmd, "keep": self.crowd.keep_on_cut})
                 self.events_total += 1
@@ -201,15 +205,20 @@ class World:
     def frames_to_keep_now(self, now: float) -> int:
         """The frames a command's cut keeps at time `now`: as many as the clock shows before the
         new segment can be ready (the batch in flight first, then one batch, with CUT_MARGIN). None
-        when it is ready before the next tick: the command then shows at that tick (measured: a
-        fixed frame kept put the reaction through the socket at 67 ms, one avatar, 2 cores)."""
+        when it is ready before the next tick may come (`tick_allowance` past `next_tick`): the
+        clock then shows it as soon as it is ready (Pacer)."""
         period = 1.0 / FPS
         ready = now + self.segment_seconds * (1.0 + CUT_MARGIN[0]) + CUT_MARGIN[1]
         if self.generating_since is not None:
             ready += max(0.0, self.generating_since + self.segment_seconds - now)
-        if ready <= self.next_tick:
+        if ready <= self.next_tick + self.tick_allowance:
             return 0
-        return min(MAX_KEEP, math.ceil((ready - self.next_tick) / period))
+        return min(MAX_KEEP, math.ceil((ready - self.next_tick - self.tick_allowance) / period))
+
+    def frames_ready(self) -> bool:
+        """Whether every avatar has a frame to show at a tick now."""
+        with self.lock:
+            return not self.crowd.needs_frames(1)
 
     def needs_generation(self) -> bool:
         with self.lock:
@@ -243,6 +252,7 @@ class World:
         their pose and count a stall). Returns the shown states."""
         with self.lock:
             self.frame += 1
+            self.cut_pending = False
             out, stalled = self.crowd.advance()
             for i, x in out.items():
                 self.history[i].append(x)
@@ -311,6 +321,67 @@ MAX_KEEP = 4  # frames a cut keeps at most (133 ms)
 # a batch may run this much longer than the recent average (fraction, seconds) before a command's
 # cut stalls a frame: this machine's segment times vary by 20-30 % between runs
 CUT_MARGIN = (0.3, 0.004)
+
+
+@dataclass
+class Pacer:
+    """The served clock's schedule, 30 ticks a second on average. A tick may come early, when a
+    command's new segment is ready before its time, or late, waiting for a frame not ready yet,
+    each by at most `max_drift` from the nominal schedule; a tick that moved sets the phase of the
+    ticks after it, and the schedule drifts back to nominal by at most `correction` a tick. So a
+    command shows as soon as its segment is made instead of at the next tick after that (the
+    reaction through the socket: one avatar, 2 cores, 67 ms before), and the frame rate over time
+    stays the clock's whatever the commands do. A tick moves at most once in `calm` ticks: a
+    stick sending goals at 60 Hz moved nearly every tick otherwise (frame gaps at the client: 95th
+    percentile 52 ms instead of 39), while a push or a click is seldom more often than that.
+
+    Times are time.perf_counter() seconds. `wait` says what to do now, `ticked` records a tick."""
+    period: float
+    next_t: float  # when the next tick is due on the current phase
+    nominal: float  # when it is due on the nominal schedule
+    last: float  # when the last tick ran
+    max_drift: float = 1.0 / FPS
+    min_interval: float = 0.5 / FPS  # an early tick never comes sooner than this after the last
+    correction: float = 0.002  # seconds a tick moves back toward nominal (6 % of a frame)
+    calm: int = 15  # ticks from one moved tick to the next
+    since_moved: int = 15
+
+    @classmethod
+    def start(cls, now: float, period: float = 1.0 / FPS) -> "Pacer":
+        return cls(period, now, now, now - period)
+
+    def allowance(self) -> float:
+        """How much later than next_t the next tick may still come."""
+        if self.since_moved < self.calm:
+            return 0.0
+        return max(0.0, self.nominal + self.max_drift - self.next_t)
+
+    def wait(self, now: float, frames_ready: bool, cut_pending: bool) -> float:
+        """Seconds to wait (or until woken by a committed segment) before asking again; 0: tick now.
+        frames_ready: every avatar has a frame to show; cut_pending: a command emptied a queue
+        since the last tick."""
+        free = self.since_moved >= self.calm
+        if now < self.next_t:
+            if cut_pending and frames_ready and free:  # a command's segment is ready: show it early
+                earliest = max(self.last + self.min_interval, self.nominal - self.max_drift)
+                return max(0.0, earliest - now) if earliest < self.next_t else self.next_t - now
+            return self.next_t - now
+        if not frames_ready and free:  # due, with a frame missing: wait for it while drift allows
+            return max(0.0, self.nominal + self.max_drift - now)
+        return 0.0
+
+    def ticked(self, now: float) -> None:
+        """A tick ran at `now`: a tick off its phase (early, or late past sleep's own lateness)
+        sets the phase of the next ones."""
+        moved = now < self.next_t or now > self.next_t + 0.25 * self.period
+        self.since_moved = 0 if moved else self.since_moved + 1
+        self.next_t = (now if moved else self.next_t) + self.period
+        self.nominal += self.period
+        if now - self.nominal > 1.0:  # fell far behind (the machine paused): start over from now
+            self.next_t = self.nominal = now + self.period
+        drift = self.next_t - self.nominal
+        self.next_t -= max(-self.correction, min(self.correction, drift))
+        self.last = now
 
 
 def frames_to_keep(seconds: float, cap: int = MAX_KEEP) -> int:
