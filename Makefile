@@ -54,6 +54,7 @@ data: install
 
 models: data
 	$(if $(RESUME),,rm -rf $(FAMILY_RUNS))
+	$(AM) limits --config configs/range-of-motion.json
 	$(AM) train --config configs/base.json
 	$(AM) train --config configs/base-continue.json
 	$(AM) train --config configs/base-deepmimic.json

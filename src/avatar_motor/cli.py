@@ -40,6 +40,40 @@ def _distill(a) -> int:
     return 0
 
 
+def _limits(a) -> int:
+    from . import config
+    from .physics import limits
+
+    cfg = config.load(limits.LimitsConfig, a.config, a.set)
+    rom, fig = limits.fit_job(cfg, _caches(cfg.data))
+    card = LIMITS_CARD.format(data=", ".join(cfg.data), anchors=cfg.anchors, cover=round(100 * cfg.cover, 3), pool=cfg.pool,
+                              held=cfg.held_out // 2, **{k: 100 * v if k.endswith("inside") else v for k, v in fig.items()})
+    path = limits.ship(rom, cfg, fig, card)
+    print(f"{path}: range of motion, {cfg.anchors} anchors per joint, fingerprint {limits.fingerprint(limits.load(path))}; "
+          f"held-out joints inside {100 * fig['joints_inside']:.1f} %, whole frames {100 * fig['frames_all_inside']:.1f} %, "
+          f"radius median {fig['radius_deg_median']:.1f} deg, max {fig['radius_deg_max']:.1f} deg")
+    return 0
+
+
+LIMITS_CARD = """# range-of-motion (non-commercial)
+
+The joint limits physics mode keeps each joint in (DROP's E_RoM; `physics/limits.py`): per joint,
+{anchors} anchor rotations spread over the training motion by farthest-point sampling (among
+{pool} frames), and a radius; a rotation farther than the radius from every anchor is turned
+toward the nearest one onto the radius. Swing and twist are limited together, shaped like the
+data. Built by `avatar-motor limits --config configs/range-of-motion.json` (seconds); float16.
+
+- Data: {data}. The Bandai Namco Research Motion Dataset is CC BY-NC 4.0, so this file is for
+  non-commercial use only. The DeepMimic clips come from the pybullet wheel (docs/deepmimic.md).
+  The code that made it is Apache-2.0.
+- The radius keeps {cover:g} % of {held} held-out real rotations of each joint inside.
+- Measured on {held} other held-out frames: {joints_inside:.1f} % of the joint rotations are
+  inside, and {frames_all_inside:.1f} % of the frames have every joint inside. Radius: median
+  {radius_deg_median:.1f} degrees, largest {radius_deg_max:.1f} degrees.
+- Fingerprint: config.json.
+"""
+
+
 def _data_import(a) -> int:
     from .data.cache import format_summary, import_motion
     from .data.retarget import load_mapping_file
@@ -150,7 +184,8 @@ def _eval_realism(a) -> int:
 
     motor = load_checkpoint(a.model)
     r = realism(motor, _caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a), a.stability_seconds,
-                sheet=a.png, export_dir=a.export)
+                sheet=a.png, export_dir=a.export, physics=a.physics,
+                range_of_motion=_range_of_motion() if a.physics else None)
     print(format_realism(r))
     if a.json:
         save_json(r, a.json)
@@ -245,6 +280,17 @@ def load_init(spec: str):
     return states[frame], shape
 
 
+def _range_of_motion():
+    """The shipped joint limits of physics mode, or None (a note) when models/ lacks them."""
+    from .physics.limits import default_range
+
+    rom = default_range(MODELS)
+    if rom is None:
+        print(f"note: {MODELS / 'range-of-motion'} is missing: physics mode runs without joint limits "
+              "(build it: avatar-motor limits --config configs/range-of-motion.json)")
+    return rom
+
+
 def _load_adaptors(a, motor) -> list:
     """The --adaptor folders (repeatable), loaded on the model's base; none given: the adaptors
     shipped in models/ for that base (`shipped_adaptors`), so the studio has them out of the box."""
@@ -312,7 +358,7 @@ def _generate(a) -> int:
         raise ValueError("--force and --ball act on a simulated body: add --physics")
     motor = load_checkpoint(a.model)
     init, shape = load_init(a.init) if a.init else (None, None)
-    crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptors(a, motor))
+    crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptors(a, motor), _range_of_motion())
     i = crowd.spawn(init, shape)
     crowd.set_physics(i, a.physics)
     frames = [crowd.state(i)]
@@ -348,7 +394,7 @@ def _serve(a) -> int:
     motor = load_checkpoint(a.model)
     if a.threads:
         torch.set_num_threads(a.threads)
-    world = World(motor, _runtime_config(a), a.seed, adaptors=_load_adaptors(a, motor))
+    world = World(motor, _runtime_config(a), a.seed, adaptors=_load_adaptors(a, motor), range_of_motion=_range_of_motion())
     if not 0 <= a.avatars <= MAX_AVATARS:
         raise ValueError(f"--avatars must be 0..{MAX_AVATARS}")
     for name in ("max_avatars", "avatars_per_client"):
@@ -454,6 +500,20 @@ def _eval_impulses(a) -> int:
     return 0
 
 
+def _eval_physics(a) -> int:
+    from .eval.physics import format_physics, physics_eval, save_json
+    from .model.checkpoint import load_checkpoint
+
+    r = physics_eval(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seed, _runtime_config(a),
+                     _range_of_motion(), a.png, progress=lambda m: print(m, flush=True) if a.verbose else None)
+    print(format_physics(r))
+    if a.png:
+        print(f"plot: {a.png}")
+    if a.json:
+        save_json(r, a.json)
+    return 0
+
+
 def _suffixed(path: str, tag: str) -> Path:
     """out.png -> out_TAG.png (one picture per row of a table)."""
     p = Path(path)
@@ -489,7 +549,7 @@ def _bench(a) -> int:
         print(serve_bench(a.model, serve_args=_serve_args(a)))
         return 0
     print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a),
-                baseline=load_checkpoint(a.baseline)))
+                baseline=load_checkpoint(a.baseline), range_of_motion=_range_of_motion()))
     return 0
 
 
@@ -638,12 +698,14 @@ def build_parser() -> argparse.ArgumentParser:
             ("distill", "train a few-step sampler (EMDM or consistency) from a base (resumes from its out)",
              "configs/emdm.json, configs/consistency.json"),
             ("adapt", "train an adaptor on a frozen base model: action labels or 2-D targets",
-             "configs/actions.json, configs/styles.json, configs/reach.json")):
+             "configs/actions.json, configs/styles.json, configs/reach.json"),
+            ("limits", "fit the range of motion physics mode keeps each joint in, from the motion data, into models/",
+             "configs/range-of-motion.json")):
         j = sub.add_parser(name, help=helptext)
         j.add_argument("--config", help=f"JSON config ({example}); fields it leaves out keep their defaults")
         j.add_argument("--set", action="append", metavar="NAME=VALUE",
                        help="override one config field (repeatable; dotted for nested fields, e.g. segment.mirror=false)")
-        j.set_defaults(func={"train": _train, "distill": _distill, "adapt": _adapt}[name])
+        j.set_defaults(func={"train": _train, "distill": _distill, "adapt": _adapt, "limits": _limits}[name])
 
     d = sub.add_parser("data", help="import and inspect motion").add_subparsers(dest="dcmd", required=True)
     i = d.add_parser("import", help="convert BVH or DeepMimic clips (folder, file, .tar.xz or .zip, pybullet's wheel) into the motion cache")
@@ -734,6 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
     er.add_argument("--png", help="contact sheet of a few rollouts")
     er.add_argument("--export", help="folder for BVH files of a few rollouts")
     er.add_argument("--json", help="write the figures as JSON")
+    er.add_argument("--physics", action="store_true", help="every avatar in physics mode (DROP)")
     er.set_defaults(func=_eval_realism)
     for name, fn, helptext in (("control", _eval_control, "speed/direction guidance errors (Table A2)"),
                                ("impulses", _eval_impulses, "impulse presets: success, ASR, ANCR (Table 2)")):
@@ -766,6 +829,16 @@ def build_parser() -> argparse.ArgumentParser:
         _add_runtime_args(e)
         e.add_argument("--seed", type=int, default=0)
         e.set_defaults(func=_eval_adaptation)
+    ep = ev.add_parser("physics", help="physics mode (DROP): push and ball series, ghost forces, energies, ablations")
+    ep.add_argument("--model", default=str(DEFAULT_MODEL))
+    ep.add_argument("--n", type=int, default=16, help="rollouts per condition")
+    _add_runtime_args(ep)
+    ep.add_argument("--seed", type=int, default=0)
+    ep.add_argument("--data", nargs="*")
+    ep.add_argument("--png", help="energy curves and the response to the push series")
+    ep.add_argument("--json", help="write the figures (and the energy traces) as JSON")
+    ep.add_argument("--verbose", action="store_true", help="print each condition as it is measured")
+    ep.set_defaults(func=_eval_physics)
     es = ev.add_parser("samplers", help="DDPM 50/8, EMDM and consistency 4/2/1: quality and speed in one run")
     es.add_argument("--base", default=str(BASE_MODEL), help="the DDPM base")
     es.add_argument("--emdm", default=str(MODELS / "primal-bandai-emdm"), help="EMDM generator ('' to skip)")

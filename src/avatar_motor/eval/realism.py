@@ -51,9 +51,12 @@ class RealData:
         return torch.stack(out)
 
 
-def training_poses(caches: list[MotionCache], n: int, g: torch.Generator) -> torch.Tensor:
-    """n local-rotation poses (n, 21, 3, 3) drawn uniformly from the frames of the training clips."""
-    clips = [(c, i) for c in caches for i, clip in enumerate(c.clips) if not is_held_out(clip["key"])]
+def training_poses(caches: list[MotionCache], n: int, g: torch.Generator, held_out: bool = False) -> torch.Tensor:
+    """n local-rotation poses (n, 21, 3, 3) drawn uniformly from the frames of the training clips
+    (of the held-out clips with held_out)."""
+    clips = [(c, i) for c in caches for i, clip in enumerate(c.clips) if is_held_out(clip["key"]) == held_out]
+    if not clips:
+        raise ValueError(f"no {'held-out' if held_out else 'training'} clip in the motion caches {[str(c.path) for c in caches]}")
     lengths = torch.tensor([c.clips[i]["frames"] for c, i in clips])
     pick = torch.multinomial(lengths.double(), n, replacement=True, generator=g)
     frames = (torch.rand(n, generator=g) * lengths[pick]).long()
@@ -100,21 +103,29 @@ def format_body(r: dict) -> str:
 
 
 def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int, cfg: RuntimeConfig, seed: int,
-            controls=None, adaptor=None, check: BodyCheck | None = None) -> torch.Tensor:
+            controls=None, adaptor=None, check: BodyCheck | None = None, physics: bool = False,
+            range_of_motion=None, crowd_out: list | None = None) -> torch.Tensor:
     """Batched autoregressive rollout: (B, 1 + frames, 267) world states of the exported body
     (`exported`), init first. controls(crowd, segment_index) may set goals/impulses/labels before
-    each segment; `check` collects the one-body figures of what the runtime emitted."""
-    crowd = Crowd(motor, cfg, seed, adaptor)
+    each segment; `check` collects the one-body figures of what the runtime emitted. physics:
+    every avatar in physics mode (its segments end where the simulation resamples, so avatars
+    run on their own segment boundaries); crowd_out: a list the Crowd is appended to."""
+    crowd = Crowd(motor, cfg, seed, adaptor, range_of_motion)
+    if crowd_out is not None:
+        crowd_out.append(crowd)
     ids = [crowd.spawn(init[k], shapes[k]) for k in range(len(init))]
-    segs = [init[:, None].float()]
+    for i in ids:
+        crowd.set_physics(i, physics)
+    made = {i: [init[k][None].float()] for k, i in enumerate(ids)}
     n = 0
-    while sum(s.shape[1] for s in segs) < frames + 1:
+    while min(sum(len(s) for s in made[i]) for i in ids) < frames + 1:
         if controls is not None:
             controls(crowd, n)
         out = crowd.step_segment()
-        segs.append(torch.stack([out[i] for i in ids]))
+        for i in ids:
+            made[i].append(out[i])
         n += 1
-    X = torch.cat(segs, 1)[:, : frames + 1]
+    X = torch.stack([torch.cat(made[i])[: frames + 1] for i in ids])
     J = body_joints(X.double(), rest_offsets(shapes, torch.float64)[:, None])
     if check is not None:
         check.add(X, J)
@@ -123,15 +134,18 @@ def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int,
 
 def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float = 8.0, seed: int = 0,
             cfg: RuntimeConfig | None = None, stability_seconds: float = 60.0, stability_n: int = 16,
-            sheet: str | Path | None = None, export_dir: str | Path | None = None, progress=print) -> dict:
+            sheet: str | Path | None = None, export_dir: str | Path | None = None, progress=print,
+            physics: bool = False, range_of_motion=None) -> dict:
+    """physics: every avatar in physics mode (DROP) with the joint limits range_of_motion."""
     cfg = cfg or RuntimeConfig()
+    sim = {"physics": physics, "range_of_motion": range_of_motion}
     g = torch.Generator().manual_seed(seed)
     held = SegmentDataset(caches, SegmentConfig(frames=15, split="heldout", mirror=False))
     x, shapes = held.sample(n, g)
     init = x[:, 0]
     t0 = time.time()
     check = BodyCheck()
-    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check)
+    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check, **sim)
     gen_time = time.time() - t0
     J = joints_of(X)
     real = RealData.load(caches)
@@ -149,6 +163,7 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     d_real = float(M.nn_pose_distance(real_q, ref).mean())
     res = {
         "n": n, "seconds": seconds, "steps": cfg.steps or motor.sampler["steps"], "sampler": motor.sampler["kind"],
+        "physics": physics,
         "ASR": M.asr(J), "ASR_real": M.asr(Jr),
         "ANCR": M.ancr(J), "ANCR_real": M.ancr(Jr),
         "naturalness_ratio": d_gen / d_real, "pose_nn_dist": d_gen, "pose_nn_dist_real": d_real,
@@ -159,7 +174,7 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     res.update(check.summary())
     if stability_seconds > 0:
         k = min(stability_n, n)
-        Xs = rollout(motor, init[:k], shapes[:k], int(stability_seconds * FPS), cfg, seed + 1)
+        Xs = rollout(motor, init[:k], shapes[:k], int(stability_seconds * FPS), cfg, seed + 1, **sim)
         Js = joints_of(Xs)
         pel = Js[..., 0, 1]
         res.update({
@@ -209,7 +224,8 @@ def format_realism(r: dict) -> str:
         ("jitter ratio", f"{r['jitter_ratio']:.2f}", "1.00", "<= 1.5"),
         ("alive ratio", f"{r['alive']:.2f}", f"{r['alive_real']:.2f}", "within 0.15 of real"),
     ]
-    out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps ({r.get('sampler', 'ddpm')})",
+    out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps ({r.get('sampler', 'ddpm')})"
+           + (", physics mode" if r.get("physics") else ""),
            f"{'metric':34s} {'generated':>10s} {'real':>8s}  goal"]
     out += [f"{a:34s} {b:>10s} {c:>8s}  {d}" for a, b, c, d in rows]
     out.append(format_body(r))

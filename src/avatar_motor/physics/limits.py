@@ -6,7 +6,9 @@ rotation farther than the radius from every anchor is turned toward the nearest 
 on the boundary: swing and twist limits together, shaped like the data, not like a cone."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -64,8 +66,70 @@ def project(local_rot: torch.Tensor, rom: RangeOfMotion) -> torch.Tensor:
 
 
 def save(rom: RangeOfMotion, path: str | Path) -> None:
-    save_file({"anchors": rom.anchors.to(torch.float32).contiguous(), "radius": rom.radius.to(torch.float32).contiguous()},
+    """float16, like every shipped artifact (an anchor moves by under 0.1 degree)."""
+    save_file({"anchors": rom.anchors.to(torch.float16).contiguous(), "radius": rom.radius.to(torch.float16).contiguous()},
               str(path))
+
+
+def fingerprint(rom: RangeOfMotion) -> str:
+    """16 hex digits over the float16 values: the shipped file's own."""
+    h = hashlib.sha256()
+    for t in (rom.anchors, rom.radius):
+        h.update(t.to(torch.float16).contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+FILE = "range_of_motion.safetensors"
+
+
+@dataclass
+class LimitsConfig:
+    """The recipe of the shipped range of motion (configs/range-of-motion.json)."""
+    data: list[str] = field(default_factory=lambda: ["dataset-1", "dataset-2", "deepmimic"])
+    anchors: int = ANCHORS
+    cover: float = COVER
+    pool: int = 20000  # training frames the anchors are chosen among
+    held_out: int = 20000  # held-out frames the radius is set on
+    seed: int = 0
+    out: str = "models/range-of-motion"
+
+
+def fit_job(cfg: LimitsConfig, caches) -> tuple[RangeOfMotion, dict]:
+    """Fit on the caches' training clips, set the radius on and measure on their held-out clips:
+    returns the range and its figures (what the card states)."""
+    from ..eval.realism import training_poses
+
+    g = torch.Generator().manual_seed(cfg.seed)
+    train = training_poses(caches, cfg.pool, g)
+    held = training_poses(caches, cfg.held_out, g, held_out=True)
+    rom = fit(train, held[: len(held) // 2], cfg.anchors, cfg.cover, g, cfg.pool)
+    check = held[len(held) // 2:]  # frames the radius was not set on
+    q = rot.matrix_to_quat(check.double())
+    inside = _angles(q, rom.anchors).amin(-1) <= rom.radius  # (M, 21)
+    figures = {"joints_inside": float(inside.float().mean()), "frames_all_inside": float(inside.all(-1).float().mean()),
+               "radius_deg_median": float(torch.rad2deg(rom.radius).median()),
+               "radius_deg_max": float(torch.rad2deg(rom.radius).max())}
+    return rom, figures
+
+
+def ship(rom: RangeOfMotion, cfg: LimitsConfig, figures: dict, card: str) -> Path:
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / (FILE + ".tmp")
+    save(rom, tmp)
+    shipped = load(tmp)  # figures are of the float16 values that ship
+    tmp.replace(out / FILE)
+    info = {"kind": "range_of_motion", "recipe": asdict(cfg), "fingerprint": fingerprint(shipped), "figures": figures}
+    (out / "config.json").write_text(json.dumps(info, indent=1) + "\n")
+    (out / "card.md").write_text(card)
+    return out / FILE
+
+
+def default_range(models: str | Path) -> RangeOfMotion | None:
+    """The shipped range of motion in the models folder, or None (then physics mode runs without
+    joint limits) when it has not been built."""
+    path = Path(models) / "range-of-motion" / FILE
+    return load(path) if path.exists() else None
 
 
 def load(path: str | Path) -> RangeOfMotion:
@@ -74,7 +138,7 @@ def load(path: str | Path) -> RangeOfMotion:
         rom = RangeOfMotion(t["anchors"].to(torch.float64), t["radius"].to(torch.float64))
     except Exception as e:  # noqa: BLE001 - any unreadable file gets the same clear message
         raise ValueError(f"{path}: not a readable range-of-motion file ({e}); rebuild it from motion "
-                         "data (physics.limits.fit, then save)") from None
+                         "data: avatar-motor limits --config configs/range-of-motion.json") from None
     if rom.anchors.ndim != 3 or rom.anchors.shape[0] != 21 or rom.anchors.shape[2] != 4 or rom.radius.shape != (21,):
         raise ValueError(f"{path}: range of motion has shapes {tuple(rom.anchors.shape)} / {tuple(rom.radius.shape)}, "
                          "expected (21, K, 4) / (21,)")

@@ -23,6 +23,7 @@ import torch
 
 from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
 from .solver import COLLISION_RADIUS, H, Bodies, Candidates, PhysicsConfig, pose_from_particles, step
+from .wrench import correct
 
 BALL_RESTITUTION = 0.3  # the ball keeps this share of its speed along the hit (a leather ball on a body)
 GROUND_RESTITUTION = 0.5  # and this on the ground
@@ -100,7 +101,8 @@ def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Bal
 
 def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsConfig | None = None, rom=None,
             forces: torch.Tensor | None = None, springs: list[list[Spring]] | None = None,
-            balls: list[list[Ball]] | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int]]:
+            balls: list[list[Ball]] | None = None, trace: list | None = None,
+            correcting: list[bool] | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int]]:
     """Physical frames for B bodies from their states x0 (B, 267) (world): candidates (B, K, N, 267)
     one-body world frames sampled from the model (frame i of each is the kinematic energy's set
     for frame i); forces (B, N, 22, 3) N per frame, or None; springs and balls: per body, lists.
@@ -108,16 +110,22 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     from the candidate chosen; joints: FK of them; velocities: differences), each body's balls
     after each frame [body][frame][ball], the index (B, N) of the candidate chosen at each frame,
     and each body's length: the frames to keep before sampling again (cfg.resample_distance; a
-    hit ends the segment after the frame it lands in). All N frames are made either way."""
+    hit ends the segment after the frame it lands in). All N frames are made either way.
+    trace: a list each frame's energies (solver.energies) are appended to. correcting: the bodies
+    the soft correction runs for (None: all, when cfg.correction > 0)."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())
     v = velocities_of(x0.double())
+    u0 = unpack(x0.double())
+    pose = (u0.root_rot, u0.local_rot)  # x's rotations, which the range of motion reads
     cu = unpack(cands.double())
     springs = springs or [[] for _ in range(B)]
     balls = [list(b) for b in (balls or [[] for _ in range(B)])]
     out_root, out_rot, out_local, out_J, chosen, ball_frames = [], [], [], [], [], [[] for _ in range(B)]
     lengths = [N] * B
+    contact_forces = None  # the frame before's (wrench.correct), which spare most frames the NNLS
+    correcting = [True] * B if correcting is None else list(correcting)
     for i in range(N):
         hit = [False] * B
         f = torch.zeros(B, 22, 3, dtype=torch.float64) if forces is None else forces[:, i].double().clone()
@@ -133,7 +141,9 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
             balls[b] = moved
             ball_frames[b].append(list(moved))
         c = Candidates(cu.joints[:, :, i], cu.root_rot[:, :, i], cu.local_rot[:, :, i])
-        solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom)
+        solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom, trace=trace, pose=pose)
+        if cfg.correction > 0 and any(correcting):  # no force the ground cannot give (DROP §6)
+            solved, _, _, contact_forces = correct(solved, x, v, bodies.masses, f, cfg, contact_forces, correcting)
         rows = torch.arange(B)
         off = ((solved - c.joints[rows, k]) ** 2).sum(-1)  # (B, 22)
         apart = ((off * bodies.masses).sum(-1) / bodies.masses.sum(-1)).sqrt()
@@ -141,6 +151,13 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
             if lengths[b] == N and (hit[b] or float(apart[b]) > cfg.resample_distance):
                 lengths[b] = i + 1
         root_pos, root_rot, local, J = pose_from_particles(solved, c.root_rot[rows, k], c.local_rot[rows, k], bodies.offsets)
+        # rigid bones can put a joint the particles held above the ground under it (a toe up to
+        # 4.6 cm in 0.2 % of frames): the frame is lifted onto it, as the kinematic runtime does
+        if cfg.contact > 0:  # (off with the contact energy: that ablation shows what it holds)
+            up = torch.zeros_like(root_pos)
+            up[:, 1] = (-J[..., 1].amin(-1)).clamp(min=0.0)
+            root_pos, J = root_pos + up, J + up[:, None]
+        pose = (root_rot, local)
         out_root.append(root_pos)
         out_rot.append(root_rot)
         out_local.append(local)

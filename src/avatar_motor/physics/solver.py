@@ -11,8 +11,10 @@ quadratic in x is solved with every p_i fixed. The energies here:
   direction (the fast mass-spring form of DROP Eq. 5);
 - ground contact: a joint below the height at which it rests on the ground is projected up to
   it, at its horizontal place of the frame before (static friction, DROP Eq. 6);
-- range of motion: the body's pose (rotations from the particles, `pose_from_particles`) with
-  each joint's rotation moved into the data's range (physics/limits.py), back through FK (E_RoM);
+- range of motion: the pose of the frame the step starts from with each joint's rotation moved
+  into the data's range (physics/limits.py), back through FK; that move, applied to each iterate,
+  is its projection (E_RoM, lagged by one frame: see `step`);
+- after the iterations the ground is also kept as a hard constraint (a last contact projection);
 - kinematic: the nearest of K next frames sampled from the motion model (DROP Eq. 10): the model
   is the body's control. The candidates are the caller's (this room samples no network).
 
@@ -85,9 +87,21 @@ class PhysicsConfig:
     # solved body is this far (m, mass-weighted RMS over the joints) from every candidate: the
     # candidates were drawn at the segment's start and no longer describe this body
     resample_distance: float = 0.08
+    # DROP §6: after each step, a frame whose root-wrench metric (force no ground contact can give)
+    # is above `ghost_threshold` body weights is moved the least that removes most of it (the
+    # weight w of Eq. 14, e.g. 1e-5; 0: off). The threshold is what real held-out motion reaches
+    # (its 95th percentile, `eval physics`: 0.14); `friction` is the contacts' coefficient. Off by
+    # default: on, the metric rose instead (eval physics, 8 rollouts: 95th percentile 0.15 -> 0.36
+    # unperturbed, 0.43 -> 0.76 after a 200 N s push; ASR 0.028 -> 0.058): the candidates, drawn
+    # at the segment's start, pull the corrected body back harder at the next frame
+    correction: float = 0.0
+    correction_step: float = 0.01  # m: the most a correction moves any joint in a frame
+    ghost_threshold: float = 0.15
+    friction: float = 0.8
 
     def validate(self) -> None:
-        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "gravity"):
+        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "gravity", "correction",
+                     "correction_step", "ghost_threshold", "friction"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0 and v == v and v != float("inf")):
                 raise ValueError(f"physics {name} must be a finite number >= 0, got {v!r}")
@@ -182,13 +196,12 @@ def project_prior(x: torch.Tensor, candidates: torch.Tensor, masses: torch.Tenso
     return candidates[torch.arange(len(x)), k], k
 
 
-def project_range(x: torch.Tensor, cands: Candidates, k: torch.Tensor, offsets: torch.Tensor, rom) -> torch.Tensor:
-    """(B, 22, 3): the body of particles x posed with candidate k's twist (pose_from_particles),
-    each joint's rotation moved into the range of motion `rom`, back through FK from x's pelvis."""
-    rows = torch.arange(len(x))
-    _, root_rot, local, _ = pose_from_particles(x, cands.root_rot[rows, k], cands.local_rot[rows, k], offsets)
-    J, _ = forward_kinematics(x[:, 0], root_rot, limits.project(local, rom), offsets.to(x.dtype))
-    return J
+def range_shift(x: torch.Tensor, root_rot: torch.Tensor, local: torch.Tensor, offsets: torch.Tensor, rom) -> torch.Tensor:
+    """(B, 22, 3): how far each joint of the body x (FK of root_rot (B, 3, 3) and local (B, 21, 3, 3)
+    on offsets from its pelvis) moves when its rotations are moved into the range of motion; zero
+    for a pose within range."""
+    inside, _ = forward_kinematics(x[:, 0], root_rot.to(x.dtype), limits.project(local, rom), offsets.to(x.dtype))
+    return inside - x
 
 
 def inertial_target(x: torch.Tensor, v: torch.Tensor, forces: torch.Tensor | None, masses: torch.Tensor,
@@ -212,14 +225,37 @@ def solve_global(bodies: Bodies, y: torch.Tensor, bones: torch.Tensor, ground: t
     return torch.cholesky_solve(rhs, bodies.factor)
 
 
+def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor, cands: Candidates,
+             cfg: PhysicsConfig, shift: torch.Tensor | None = None, ground: float = 0.0) -> dict[str, torch.Tensor]:
+    """Each term of the energy the step minimises, at the solved frame `it` (B, 22, 3) after x with
+    inertial target y, in joules (B,): momentum 1/(2h^2) |it - y|^2_M, and each constraint's
+    weight/2 times its squared distance to its projection (what `eval physics` plots, DROP Fig. 4)."""
+    m = bodies.masses[..., None] / H**2
+
+    def term(w, target):
+        return 0.5 * w * (m * (it - target) ** 2).sum((-1, -2))
+
+    d = it[:, BONES[:, 1]] - it[:, BONES[:, 0]] - project_bones(it, bodies.rest)
+    out = {"momentum": term(1.0, y),
+           "rigidity": 0.5 * (_bone_weights(bodies.masses, cfg)[..., None] * d ** 2).sum((-1, -2)),
+           "contact": term(cfg.contact, project_ground(it, x, ground)),
+           "kinematic": term(cfg.kinematic, project_prior(it, cands.joints.to(it.dtype), bodies.masses)[0])}
+    if shift is not None:  # the range of motion's move (range_shift), as the step applies it
+        out["range_of_motion"] = term(cfg.range_of_motion, it + shift)
+    return out
+
+
 def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, forces: torch.Tensor | None = None,
-         cfg: PhysicsConfig | None = None, rom=None, ground: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+         cfg: PhysicsConfig | None = None, rom=None, ground: float = 0.0, trace: list | None = None,
+         pose: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One frame (DROP Algorithm 1 without the correction): joints x (B, 22, 3) m and velocities
     v (B, 22, 3) m/s at t, the motion model's candidate next frames, external forces (B, 22, 3) N
     held over the frame, the range of motion (None: that energy holds everywhere). Starts from the
     inertial target, then `iterations` local/global rounds. Returns x_{t+1},
     v_{t+1} = (x_{t+1} - x_t) / h and the index (B,) of the candidate the kinematic energy pulled
-    toward last (its rotations give the body its twist)."""
+    toward last (its rotations give the body its twist). trace: a list the step's `energies` are
+    appended to. pose: the rotations (root (B, 3, 3), local (B, 21, 3, 3)) whose FK x is, which the
+    range of motion reads (None: no range of motion this step)."""
     cfg = cfg or PhysicsConfig()
     x, v, cj = x.to(torch.float64), v.to(torch.float64), cands.joints.to(torch.float64)
     forces = None if forces is None else forces.to(torch.float64)
@@ -227,11 +263,20 @@ def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, fo
     # from the inertial target: an energy whose constraint holds projects the iterate onto itself,
     # which pulls toward the start until the iterations converge, so the start must be neutral
     # (from the nearest candidate, a body with no prior energy still followed the prior)
+    # the range of motion moves each iterate by what moves the frame the step starts from into
+    # range (its rotations are known): a joint past its limit is pulled back from the next frame
+    # on. Posing each iterate instead (pose_from_particles, 4 ms a call) took 27 % of a physics
+    # segment's time for 8 avatars, and 1 avatar fell from 139 to 29 frames/s
     it, k = y, None
+    shift = None if rom is None or cfg.range_of_motion == 0 or pose is None else range_shift(x, *pose, bodies.offsets, rom)
     for _ in range(cfg.iterations):
         kin, k = project_prior(it, cj, bodies.masses)
-        ranged = it if rom is None or cfg.range_of_motion == 0 else project_range(it, cands, k, bodies.offsets, rom)
+        ranged = it if shift is None else it + shift
         it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, ground), ranged, kin, cfg)
+    if trace is not None:
+        trace.append(energies(bodies, x, y, it, cands, cfg, shift, ground))
+    if cfg.contact > 0:  # the ground as a hard constraint at the end (as position-based dynamics
+        it = project_ground(it, x, ground)  # does): the energy alone left toes 7 cm under it
     return it, (it - x) / H, k
 
 

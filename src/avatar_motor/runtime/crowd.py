@@ -24,7 +24,7 @@ from ..body.motion_state import FPS, SLICES, STATE_DIM, Transform, canonical_tra
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
 from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
-from .processing import physical_faults, solve_body
+from .processing import physical_faults
 from .sampler import Sampler, _subset
 from .stages import DEFAULT_STAGES, PhysicsJob, SegmentBatch, StageContext, check_stages, run_stages
 
@@ -51,6 +51,12 @@ IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
 IMPULSE_SCALE = 30.0
 MAX_FORCE = 5000.0  # N: a force command above this is a mistake (a 400 N s push over one frame is 12,000 N: use an impulse)
 MAX_BALLS = 8  # balls an avatar's simulation keeps (the oldest goes)
+# seconds after an external effect (a force's end, a push, a throw, a spring's release) during
+# which physics mode runs DROP's soft correction: unperturbed, the root-wrench metric reads like
+# real motion's (eval physics), and 8 avatars corrected at every frame kept 27 frames/s each
+# (39 corrected after effects only)
+SETTLE = 2.0
+BALL_FLIGHT = 1.0  # seconds a thrown ball may fly before it hits: the correction runs that much longer
 log = logging.getLogger("avatar_motor.runtime")
 
 
@@ -150,6 +156,8 @@ class AvatarState:
     shown_balls: list = field(default_factory=list)  # and as of the frame shown
     ball_queue: list = field(default_factory=list)  # the balls of each queued frame (beside queue)
     pending_balls: list = field(default_factory=list)  # thrown, entering at the next segment
+    # the avatar frame until which the soft correction runs (SETTLE after an external effect)
+    disturbed_until: int = 0
 
     @property
     def adapted(self) -> bool:
@@ -197,11 +205,15 @@ def validate_vector(v, n: int, what: str) -> torch.Tensor:
 
 
 class Crowd:
-    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0, adaptors=None):
+    def __init__(self, motor: Motor, config: RuntimeConfig | None = None, seed: int = 0, adaptors=None,
+                 range_of_motion=None):
         """adaptors: AdaptedDenoisers on motor's (base) network, for labels or targets: a list, one,
         or None. Several may be loaded (actions, styles, reaching); each avatar is steered by at
-        most one of them at a time."""
+        most one of them at a time. range_of_motion: the joint limits of physics mode
+        (physics.limits; None: no limits, as without models/range-of-motion)."""
         self.motor = motor
+        self.range_of_motion = range_of_motion
+        self.trace: dict | None = None  # set to {} to collect each avatar's physics energies per frame
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
         self.sampler = Sampler(motor, self.cfg, adaptors)
@@ -424,6 +436,8 @@ class Crowd:
 
     def _add_velocity(self, a: AvatarState, dv: torch.Tensor) -> None:
         a.pending_velocity = dv if a.pending_velocity is None else a.pending_velocity + dv
+        if a.physics:  # a blow on the simulated body
+            a.disturbed_until = max(a.disturbed_until, a.frame + self.keep_on_cut + 1 + round(SETTLE * FPS))
         self._changed(a)
 
     # ------------------------------------------------------------ physics (DROP)
@@ -445,9 +459,12 @@ class Crowd:
             raise ValueError(f"avatar {a.id} is not in physics mode: {what} acts only on a simulated body; "
                              "turn physics on for it first")
 
-    def _perturbed(self, a: AvatarState) -> None:
-        """Something physical changed: the queued frames no longer hold (they are cut like a command's)."""
+    def _perturbed(self, a: AvatarState, until: int | None = None) -> None:
+        """Something physical changed: the queued frames no longer hold (they are cut like a command's).
+        until: the frame its effect lasts to; the soft correction runs until SETTLE after it."""
         a.planned = ()
+        end = a.frame + self.keep_on_cut + 1 if until is None else until
+        a.disturbed_until = max(a.disturbed_until, end + round(SETTLE * FPS))
         self._changed(a)
 
     def _joint(self, joint) -> int:
@@ -467,7 +484,7 @@ class Crowd:
             raise ValueError(f"force duration must be in (0, 10] s, got {seconds}")
         first = a.frame + self.keep_on_cut + 1  # the first frame the cut makes anew
         a.forces.append((self._joint(joint), f, first, first + max(1, round(seconds * FPS))))
-        self._perturbed(a)
+        self._perturbed(a, a.forces[-1][3])
 
     def set_spring(self, i: int, joint, target, stiffness: float = 400.0) -> None:
         """Pull a joint toward a world point (x, y, z) with a spring of `stiffness` N/m (the
@@ -495,7 +512,7 @@ class Crowd:
         if float(ball.velocity.norm()) > 60:
             raise ValueError(f"ball speed {float(ball.velocity.norm()):.0f} m/s is above 60 m/s")
         a.pending_balls.append(ball)  # it enters where the next segment starts (after the cut)
-        self._perturbed(a)
+        self._perturbed(a, a.frame + round(BALL_FLIGHT * FPS))  # it may fly that long before it hits
 
     def balls(self, i: int) -> list:
         """The balls avatar i's simulation holds at the frame shown (physics.Ball, world)."""
@@ -529,9 +546,13 @@ class Crowd:
         """Generate one whole segment for every avatar from its current state (offline use)."""
         for a in self.avatars.values():
             self._trim(a, 0)
-        self.refill(1)
+        for _ in range(3):  # again for an avatar the physical guard stood up (commit): its queue is empty
+            if not self.refill(1):
+                break
         out = {}
         for a in self.avatars.values():
+            if not a.queue:  # a model that keeps failing the guard: the avatar holds its (standing) state
+                a.queue.append(a.state)
             out[a.id] = torch.stack(a.queue)
             a.state = a.queue[-1]
             a.shown_balls = list(a.balls)
@@ -575,7 +596,9 @@ class Crowd:
                 if hi > lo:
                     forces[lo:hi, j] += f.double()
             # thrown balls stay pending until a segment with them commits (a cut one would lose them)
-            jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls)))
+            disturbed = bool(a.springs) or first <= a.disturbed_until  # a spring while it pulls
+            jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls),
+                                   disturbed))
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, impulse_velocity=dv, impulse=impulse,
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
@@ -649,7 +672,11 @@ class Crowd:
         made them) as bodies in the world, then the solver through the segment (physics/simulate)."""
         K, N = self.cfg.physics.candidates, cands_c.shape[1]
         idx = torch.tensor(phys).repeat_interleave(K)
-        cands = solve_body(x0c[idx], cands_c.double(), offsets[idx])  # each candidate as one body
+        # each candidate processed as a plain avatar's segment is (its feet locked and above the
+        # ground, one body): the prior pulls toward what the runtime shows, not the network's raw
+        # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep)
+        ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float())
+        cands = run_stages(self.cfg, ctx, cands_c.float()).double()
         cands = apply_transform(cands, tf.R[idx], tf.t[idx]).reshape(len(phys), K, N, STATE_DIM)
         p = torch.tensor(phys)
         x0 = batch.x0[p].clone()
@@ -657,9 +684,14 @@ class Crowd:
         x0[:, SLICES["velocities"]] += batch.impulse_velocity[p].reshape(len(phys), 66)
         jobs = [batch.physics[k] for k in phys]
         bodies = prepare_bodies(offsets[p], self.cfg.physics)
-        frames, balls, _, lengths = physics.segment(bodies, x0, cands, self.cfg.physics, None,
+        trace = [] if self.trace is not None else None
+        frames, balls, _, lengths = physics.segment(bodies, x0, cands, self.cfg.physics, self.range_of_motion,
                                                     torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
-                                                    [j.balls for j in jobs])
+                                                    [j.balls for j in jobs], trace, [j.disturbed for j in jobs])
+        if trace is not None:  # per avatar, the energies of the frames it keeps
+            for n, k in enumerate(phys):
+                self.trace.setdefault(batch.avatars[k], []).extend(
+                    {term: float(e[n]) for term, e in frame.items()} for frame in trace[:lengths[n]])
         return frames.float(), lengths, balls
 
     def stale(self, batch: SegmentBatch) -> bool:

@@ -24,6 +24,7 @@ class PhysicsJob:
     springs: list  # physics.Spring
     balls: list  # physics.Ball, as of the segment's initial state
     thrown: list  # those of them thrown since the last segment (pending until this one commits)
+    disturbed: bool = True  # an external effect is recent: the soft correction runs (Crowd.SETTLE)
 
 
 @dataclass

@@ -49,11 +49,12 @@ class World:
     record_seconds: float = 60.0
 
     adaptors: list = field(default_factory=list)  # AdaptedDenoisers for labels, styles or targets
+    range_of_motion: object = None  # physics mode's joint limits (physics.limits.RangeOfMotion)
     max_avatars: int = MAX_AVATARS  # spawns beyond are refused (the server sets what it keeps in real time)
 
     def __post_init__(self):
         self.lock = threading.RLock()
-        self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptors)
+        self.crowd = Crowd(self.motor, self.config, self.seed, self.adaptors, self.range_of_motion)
         # frames kept when a command cuts an avatar's queue, shown while its new segment is made
         # (Crowd._changed): served, set per command from the clock (frames_to_keep_now); offline
         # and in replays, from the script
