@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-8)
 WEB_DIST := src/avatar_motor/serve/static/dist/studio.js
 
-.PHONY: studio test install web chromium clean models data
+.PHONY: studio test install web chromium clean models data wheel
 
 install: $(STAMP)
 
@@ -32,8 +32,15 @@ studio: install web
 test: install web chromium
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
+# dist/avatar_motor-*.whl: the package with the shipped models and the studio, so that
+# `pip install dist/avatar_motor-*.whl` then `avatar-motor serve` works in a fresh environment
+wheel: install web
+	rm -rf build dist src/avatar_motor/_models
+	cp -r models src/avatar_motor/_models
+	$(BIN)/pip wheel --no-deps -q -w dist . ; status=$$?; rm -rf build src/avatar_motor/_models; exit $$status
+
 clean:
-	rm -rf $(VENV) web/node_modules src/avatar_motor/serve/static/dist test-artifacts
+	rm -rf $(VENV) web/node_modules src/avatar_motor/serve/static/dist test-artifacts dist build src/avatar_motor/_models
 
 # The shipped model family, rebuilt in dependency order: the motion data, the base (three stages),
 # its one-step EMDM sampler, then the adaptors (actions, styles, reaching), each shipped into

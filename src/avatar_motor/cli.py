@@ -7,11 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-MODELS = Path(__file__).resolve().parents[2] / "models"
-BASE_MODEL = MODELS / "primal-bandai"  # what adaptors and few-step samplers are trained on
-# what the runtime runs unless told otherwise: the few-step generator (model card, "Few-step sampling")
-FEW_STEP_MODEL = MODELS / "primal-bandai-emdm"
-DEFAULT_MODEL = FEW_STEP_MODEL if (FEW_STEP_MODEL / "config.json").exists() else BASE_MODEL
+from .paths import BASE_MODEL, DEFAULT_MODEL, FEW_STEP_MODEL, MODELS  # noqa: F401 (tests import them from here)
 
 
 def _train(a) -> int:
