@@ -466,20 +466,20 @@ def test_eval_physics_measures_falls_responses_penetration_and_ghost_forces():
         X[b, :, SLICES["joints"]] = Jb.reshape(T, 66)
     X[..., SLICES["local_rot"]] = standing_state()[SLICES["local_rot"]].double()
     base = X[[0, 0, 0, 0, 0]]
-    row = measure(X.float(), [10] * 5, base.float(), 70.0, None)
+    row = measure(X.float(), [10] * 5, base.float(), PhysicsConfig(mass=70.0), None)
     assert abs(row["stayed_up"] - 3 / 5) < 1e-6 and abs(row["fell_and_got_up"] - 1 / 5) < 1e-6
     assert abs(row["fell_stayed_down"] - 1 / 5) < 1e-6
     assert abs(row["penetration_cm"] - 5.0) < 0.01
-    pushed_only = measure(X[3:4].float(), [10], base[:1].float(), 70.0, None)
+    pushed_only = measure(X[3:4].float(), [10], base[:1].float(), PhysicsConfig(mass=70.0), None)
     assert abs(pushed_only["response_m"] - 0.5 * 30 / 49) < 0.01
     # the root-wrench metric: free fall needs no ground; hovering still needs one body weight
     g = 9.81
     t = torch.arange(10, dtype=torch.float64) / 30
     air = u.joints[0] + torch.tensor([0.0, 3.0, 0.0], dtype=torch.float64)
     falling = air[None] - (0.5 * g * t**2)[:, None, None] * torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
-    assert float(np.abs(root_wrench_series(falling, 70.0)).max()) < 1e-6 * 70 * g
+    assert float(np.abs(root_wrench_series(falling, PhysicsConfig(mass=70.0, gravity=g))).max()) < 1e-6
     hover = air[None].expand(10, 22, 3)
-    assert np.allclose(root_wrench_series(hover, 70.0), 70 * g, rtol=1e-6)
+    assert np.allclose(root_wrench_series(hover, PhysicsConfig(mass=70.0, gravity=g)), 1.0, rtol=1e-6)  # body weights
 
 
 def test_the_soft_correction_runs_after_an_external_effect_only(tmp_path, monkeypatch):

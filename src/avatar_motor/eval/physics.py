@@ -46,7 +46,7 @@ def _direction(g: torch.Generator) -> torch.Tensor:
     return torch.tensor([math.cos(a), 0.0, math.sin(a)])
 
 
-def perturbation(kind: str, amount: float, speed: float = 0.0, seed: int = 0):
+def perturbation(kind: str, amount: float, speed: float = 0.0, seed: int = 0, gravity: float = PhysicsConfig.gravity):
     """controls(crowd, segment) for `rollout`: at the first segment boundary after BEFORE s, a push
     of `amount` N s at the pelvis, or a ball of `amount` kg at `speed` m/s at the chest, each
     avatar from its own random direction. Records each avatar's frame of the perturbation in
@@ -65,53 +65,52 @@ def perturbation(kind: str, amount: float, speed: float = 0.0, seed: int = 0):
             else:
                 chest = joints_of(a.state.double())[CHEST].float()
                 t = THROW_FROM / speed
-                v = -d * speed + torch.tensor([0.0, 9.81 * t / 2, 0.0])  # arcs onto the chest
+                v = -d * speed + torch.tensor([0.0, gravity * t / 2, 0.0])  # arcs onto the chest
                 crowd.throw(i, (chest + d * THROW_FROM).tolist(), v.tolist(), mass=amount)
 
     controls.at = {}
     return controls
 
 
-def root_wrench_series(J: torch.Tensor, mass: float, friction: float = PhysicsConfig.friction) -> np.ndarray:
-    """The root-wrench metric (N) at each frame t >= 1 of joints J (T, 22, 3): the force no ground
-    contact at frame t can give for the motion into frame t + 1 (wrench.root_wrench)."""
+def root_wrench_series(J: torch.Tensor, phys: PhysicsConfig) -> np.ndarray:
+    """The root-wrench metric in body weights at each frame t >= 1 of joints J (T, 22, 3): the
+    force no ground contact at frame t can give for the motion into frame t + 1
+    (wrench.root_wrench), for a body of phys.mass under phys.gravity with phys.friction."""
     x = J.double().numpy()
-    m = (MASS_SHARE.double() * mass).numpy()
+    m = (MASS_SHARE.double() * phys.mass).numpy()
     out = []
     for t in range(1, len(x) - 1):
         v = (x[t] - x[t - 1]) * FPS
-        out.append(wrench.root_wrench(x[t + 1], x[t], v, m, wrench.contacts(x[t]), 9.81, friction)[0])
-    return np.array(out)
+        out.append(wrench.root_wrench(x[t + 1], x[t], v, m, wrench.contacts(x[t]), phys.gravity, phys.friction)[0])
+    return np.array(out) / (phys.mass * phys.gravity)
 
 
 def joint_limit_excess(X: torch.Tensor, rom) -> torch.Tensor:
     """Degrees (B, T, 21) by which each joint's rotation lies outside the range of motion."""
-    q = unpack(X.double()).local_rot
-    from ..body import rotations as rot
-    d = limits._angles(rot.matrix_to_quat(q), rom.anchors).amin(-1)
-    return torch.rad2deg((d - rom.radius).clamp(min=0.0))
+    return torch.rad2deg(limits.excess(unpack(X.double()).local_rot, rom).clamp(min=0.0))
 
 
-def measure(X: torch.Tensor, at: list[int], base: torch.Tensor | None, mass: float, rom) -> dict:
+def measure(X: torch.Tensor, at: list[int], base: torch.Tensor | None, phys: PhysicsConfig, rom) -> dict:
     """The figures of one condition: X (B, T, 267) exported, perturbed at frames `at` (B,), base
-    the same states unperturbed (None: this is the unperturbed row)."""
+    the same states unperturbed (None: this is the unperturbed row); phys: the simulated body's
+    mass, gravity and friction (the root-wrench metric's)."""
     J = joints_of(X)
     pel = J[..., 0, :]
+    base_pel = None if base is None else joints_of(base)[:, :, 0]
     B, T = J.shape[:2]
     resp, fell, got_up, ghosts = [], [], [], []
     for b in range(B):
         p = at[b]
         end = min(p + int(FPS), T - 1)
         move = pel[b, end, [0, 2]] - pel[b, p, [0, 2]]
-        if base is not None:
-            pb = joints_of(base)[b, :, 0]
-            move = move - (pb[end, [0, 2]] - pb[p, [0, 2]])
+        if base_pel is not None:
+            move = move - (base_pel[b, end, [0, 2]] - base_pel[b, p, [0, 2]])
         resp.append(float(move.norm()))
         down = bool((pel[b, p:, 1] < FALLEN).any())
         fell.append(down)
         got_up.append(down and bool((pel[b, -int(0.5 * FPS):, 1] > UP).all()))
-        ghosts.append(root_wrench_series(J[b, p + int(PUSH_SECONDS * FPS) + 3:], mass))
-    g = np.concatenate(ghosts) / (mass * 9.81)
+        ghosts.append(root_wrench_series(J[b, p + int(PUSH_SECONDS * FPS) + 3:], phys))
+    g = np.concatenate(ghosts)
     after = torch.cat([J[b, at[b]:] for b in range(B)])
     row = {"response_m": float(np.mean(resp)), "stayed_up": 1.0 - float(np.mean(fell)),
            "fell_and_got_up": float(np.mean(got_up)), "fell_stayed_down": float(np.mean(fell)) - float(np.mean(got_up)),
@@ -125,12 +124,12 @@ def measure(X: torch.Tensor, at: list[int], base: torch.Tensor | None, mass: flo
     return row
 
 
-def real_wrench(caches, n: int, seconds: float, mass: float, seed: int) -> dict:
+def real_wrench(caches, n: int, seconds: float, phys: PhysicsConfig, seed: int) -> dict:
     """The root-wrench metric of held-out real clips (on the average body): its range in real motion."""
     real = RealData.load(caches)
     W = real.windows(seconds)
     W = W[torch.randperm(len(W), generator=torch.Generator().manual_seed(seed))[:n]]
-    g = np.concatenate([root_wrench_series(w, mass) for w in W]) / (mass * 9.81)
+    g = np.concatenate([root_wrench_series(w, phys) for w in W])
     return {"ghost_median": float(np.median(g)), "ghost_p95": float(np.percentile(g, 95)), "windows": len(W)}
 
 
@@ -139,7 +138,7 @@ def energy_run(motor: Motor, init, shapes, cfg: RuntimeConfig, seed: int, rom, k
     """One avatar perturbed as in `perturbation`: each frame's energies (solver.energies) and the
     frame of the perturbation."""
     crowds: list = []
-    controls = perturbation(kind, amount, speed, seed)
+    controls = perturbation(kind, amount, speed, seed, cfg.physics.gravity)
 
     def traced(crowd, seg):
         if crowd.trace is None:
@@ -156,7 +155,7 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
                  png: str | Path | None = None, progress=print) -> dict:
     cfg = cfg or RuntimeConfig()
     init, shapes, what = initial_states(caches, n, seed)
-    mass = cfg.physics.mass
+    phys = cfg.physics
     frames = int((BEFORE + AFTER) * FPS)
 
     def run(controls=None, physics_cfg=None, range_of_motion=rom):
@@ -166,18 +165,18 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
     out = {"what": what, "n": n, "rows": [], "ablations": []}
     base = run()
     start = [int(BEFORE * FPS)] * n
-    out["rows"].append({"condition": "none", **measure(base, start, None, mass, rom)})
+    out["rows"].append({"condition": "none", **measure(base, start, None, phys, rom)})
     progress(f"unperturbed: {out['rows'][-1]}")
     conditions = [("push", j, 0.0, f"push {j:g} N s") for j in PUSHES]
     conditions += [("ball", m, v, f"ball {m:g} kg {v:g} m/s") for m, v in BALLS]
     for kind, amount, speed, name in conditions:
-        ctl = perturbation(kind, amount, speed, seed)
+        ctl = perturbation(kind, amount, speed, seed, phys.gravity)
         X = run(ctl)
         out["rows"].append({"condition": name, "kind": kind, "amount": amount, "speed": speed,
-                            **measure(X, [ctl.at[i] for i in sorted(ctl.at)], base, mass, rom)})
+                            **measure(X, [ctl.at[i] for i in sorted(ctl.at)], base, phys, rom)})
         progress(f"{name}: {out['rows'][-1]}")
     if caches:
-        out["real"] = real_wrench(caches, n, BEFORE + AFTER, mass, seed)
+        out["real"] = real_wrench(caches, n, BEFORE + AFTER, phys, seed)
     ablations = [("full system", None, rom), ("no prior (kinematic 0)", dataclasses.replace(cfg.physics, kinematic=0.0), rom),
                  ("no contact", dataclasses.replace(cfg.physics, contact=0.0), rom), ("no range of motion", None, None),
                  ("soft correction", dataclasses.replace(cfg.physics, correction=CORRECTION), rom)]
@@ -187,10 +186,10 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
                 src = out["rows"][0] if kind == "none" else next(x for x in out["rows"] if x["condition"] == cond)
                 row = dict(src)
             else:
-                ctl = perturbation(kind, amount, speed, seed) if kind != "none" else None
+                ctl = perturbation(kind, amount, speed, seed, phys.gravity) if kind != "none" else None
                 X = run(ctl, pc, r)
                 at = [ctl.at[i] for i in sorted(ctl.at)] if ctl else start
-                row = measure(X, at, None if ctl is None else base, mass, rom)
+                row = measure(X, at, None if ctl is None else base, phys, rom)
             out["ablations"].append({"ablation": name, "condition": cond, **row})
             progress(f"ablation {name}, {cond}: {out['ablations'][-1]}")
     out["energies"] = {}

@@ -52,6 +52,12 @@ def fit(local_rot: torch.Tensor, held_out: torch.Tensor, anchors: int = ANCHORS,
     return RangeOfMotion(chosen, torch.quantile(d, cover, dim=0))
 
 
+def excess(local_rot: torch.Tensor, rom: RangeOfMotion) -> torch.Tensor:
+    """(..., 21) rad: how far each joint's rotation of local_rot (..., 21, 3, 3) lies beyond its
+    radius from the nearest anchor (<= 0: inside the range)."""
+    return _angles(rot.matrix_to_quat(local_rot.to(torch.float64)), rom.anchors.to(torch.float64)).amin(-1) - rom.radius
+
+
 def project(local_rot: torch.Tensor, rom: RangeOfMotion) -> torch.Tensor:
     """Local rotations (..., 21, 3, 3) moved into the range: one farther than its joint's radius
     from every anchor is slerped toward the nearest anchor onto the radius; others unchanged."""
@@ -104,8 +110,7 @@ def fit_job(cfg: LimitsConfig, caches) -> tuple[RangeOfMotion, dict]:
     held = training_poses(caches, cfg.held_out, g, held_out=True)
     rom = fit(train, held[: len(held) // 2], cfg.anchors, cfg.cover, g, cfg.pool)
     check = held[len(held) // 2:]  # frames the radius was not set on
-    q = rot.matrix_to_quat(check.double())
-    inside = _angles(q, rom.anchors).amin(-1) <= rom.radius  # (M, 21)
+    inside = excess(check, rom) <= 0  # (M, 21)
     figures = {"joints_inside": float(inside.float().mean()), "frames_all_inside": float(inside.all(-1).float().mean()),
                "radius_deg_median": float(torch.rad2deg(rom.radius).median()),
                "radius_deg_max": float(torch.rad2deg(rom.radius).max())}

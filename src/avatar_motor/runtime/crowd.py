@@ -437,7 +437,7 @@ class Crowd:
     def _add_velocity(self, a: AvatarState, dv: torch.Tensor) -> None:
         a.pending_velocity = dv if a.pending_velocity is None else a.pending_velocity + dv
         if a.physics:  # a blow on the simulated body
-            a.disturbed_until = max(a.disturbed_until, a.frame + self.keep_on_cut + 1 + round(SETTLE * FPS))
+            self._disturb(a)
         self._changed(a)
 
     # ------------------------------------------------------------ physics (DROP)
@@ -461,11 +461,16 @@ class Crowd:
 
     def _perturbed(self, a: AvatarState, until: int | None = None) -> None:
         """Something physical changed: the queued frames no longer hold (they are cut like a command's).
-        until: the frame its effect lasts to; the soft correction runs until SETTLE after it."""
+        until: see _disturb."""
         a.planned = ()
+        self._disturb(a, until)
+        self._changed(a)
+
+    def _disturb(self, a: AvatarState, until: int | None = None) -> None:
+        """An external effect on avatar a lasting to frame `until` (None: the first frame a cut
+        makes anew): the soft correction runs until SETTLE after it."""
         end = a.frame + self.keep_on_cut + 1 if until is None else until
         a.disturbed_until = max(a.disturbed_until, end + round(SETTLE * FPS))
-        self._changed(a)
 
     def _joint(self, joint) -> int:
         j = JOINT_NAMES.index(joint) if isinstance(joint, str) and joint in JOINT_NAMES else joint
