@@ -8,6 +8,7 @@ process with batch B.
 """
 from __future__ import annotations
 
+import atexit
 import json
 import math
 import os
@@ -118,6 +119,9 @@ class Trainer:
         if int(os.environ.get("WORLD_SIZE", "1")) > 1:
             if not dist.is_initialized():
                 dist.init_process_group("gloo")
+                # a process leaving with its gloo group alive can abort in the group's destructor
+                # ("terminate called without an active exception") while the other rank still saves
+                atexit.register(dist.destroy_process_group)
             self.rank, self.world = dist.get_rank(), dist.get_world_size()
             if cfg.batch % self.world:
                 raise ValueError(f"batch {cfg.batch} must divide by the {self.world} processes")
@@ -267,6 +271,8 @@ class Trainer:
                 if self.rank == 0:
                     plot_losses(log_path, self.out / "loss.png")
         bar.close()
+        if self.world > 1:
+            dist.barrier()  # no rank leaves while rank 0 still writes the checkpoint and plot
         return history
 
 
