@@ -43,14 +43,15 @@ clean:
 	rm -rf $(VENV) web/node_modules src/avatar_motor/serve/static/dist test-artifacts dist build src/avatar_motor/_models
 
 # The shipped model family, rebuilt in dependency order: the motion data, the base (three stages),
-# its one-step EMDM sampler, then the adaptors (actions, styles, reaching), each shipped into
+# its one-step EMDM sampler, then the adaptors (actions, styles, reaching) and the persona model
+# (the base fine-tuned with text, shape and trajectory tokens), each shipped into
 # models/ as float16 with the fingerprint of the base it was trained on. About 9 h on 2 CPU
-# cores (base 3.5 h + DeepMimic stages 1.3 h, EMDM 1.1 h, adaptors 3 x 0.5 h, evaluations); needs ../shared. Starts
+# cores (base 3.5 h + DeepMimic stages 1.3 h, EMDM 1.1 h, adaptors 3 x 0.5 h, persona 1.5 h, evaluations); needs ../shared. Starts
 # afresh (the runs below are deleted) unless RESUME=1, which continues each interrupted job. A
 # shipped folder keeps its card.md: bring its figures up to date from runs/evals/.
 SHARED ?= ../shared/data/bandai-namco
 PYBULLET ?= pybullet==3.2.7
-FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach
+FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/persona
 AM := $(BIN)/avatar-motor
 
 data: install
@@ -75,6 +76,8 @@ models: data
 	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles
 	$(AM) adapt --config configs/reach.json
 	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach
+	$(AM) train --config configs/persona.json
+	$(AM) ship runs/persona/checkpoint models/primal-bandai-persona
 	mkdir -p runs/evals
 	$(AM) eval realism --model models/primal-bandai > runs/evals/realism.txt && cat runs/evals/realism.txt
 	$(AM) eval impulses --model models/primal-bandai-emdm > runs/evals/impulses.txt && cat runs/evals/impulses.txt
@@ -82,3 +85,4 @@ models: data
 	$(AM) eval actions --adaptors actions=models/primal-bandai-actions --evaluators 5 --adaptor-scale 2.5 > runs/evals/actions.txt && cat runs/evals/actions.txt
 	$(AM) eval actions --adaptors styles=models/primal-bandai-styles --label-key style --data dataset-2 > runs/evals/styles.txt && cat runs/evals/styles.txt
 	$(AM) eval reach --adaptors reach=models/primal-bandai-reach > runs/evals/reach.txt && cat runs/evals/reach.txt
+	$(AM) eval persona > runs/evals/persona.txt && cat runs/evals/persona.txt

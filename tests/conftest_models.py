@@ -22,3 +22,17 @@ def tiny_motor(tmp_path: Path, seed: int = 0):
 
 def shipped_or_tiny(tmp_path: Path):
     return load_checkpoint(SHIPPED) if (SHIPPED / "model.safetensors").exists() else tiny_motor(tmp_path)
+
+
+SHIPPED_PERSONA = SHIPPED.parent / "primal-bandai-persona"
+
+
+def persona_or_tiny(tmp_path: Path):
+    """The shipped persona model, else a tiny random one with persona tokens (mechanics only)."""
+    if (SHIPPED_PERSONA / "model.safetensors").exists():
+        return load_checkpoint(SHIPPED_PERSONA)
+    torch.manual_seed(0)
+    net = Denoiser(DenoiserConfig(width=32, depth=2, heads=4, ff=64, dropout=0.0, persona=True))
+    norm = Normalizer(torch.zeros(STATE_DIM), torch.full((STATE_DIM,), 0.05))
+    save_checkpoint(tmp_path / "ptiny", net, norm, {"name": "tiny-persona-test", "licence": "test only"})
+    return load_checkpoint(tmp_path / "ptiny")

@@ -301,3 +301,35 @@ def test_physics_in_the_studio(tmp_path, artifacts):
         assert not world.crowd.avatars[0].physics
         off = largest_step(2.0)
         assert off < 0.25, off  # switching off continues from the frame shown
+
+
+@needs_chromium
+def test_a_crowd_of_personas_in_the_studio(tmp_path, artifacts):
+    from .conftest_models import persona_or_tiny
+    world = World(persona_or_tiny(tmp_path), RuntimeConfig(), seed=0)
+    with studio_page(world, "window.studio && window.studio.frame > 5") as page:
+        assert page.eval_on_selector("#persona-panel", "p => p.style.display") == ""  # the model has persona tokens
+        page.fill("#persona-text", "a cheerful baker")
+        press(page, "#persona-set")
+        deadline = time.time() + 15
+        while time.time() < deadline and world.crowd.avatars[0].persona is None:
+            time.sleep(0.05)
+        assert world.crowd.avatars[0].persona == "a cheerful baker"
+        page.fill("#persona-count", "4")
+        press(page, "#persona-crowd")
+        deadline = time.time() + 30
+        while time.time() < deadline and sum(a.persona is not None for a in world.crowd.avatars.values()) < 5:
+            time.sleep(0.1)
+        people = {a.persona for a in world.crowd.avatars.values()}
+        assert len(world.crowd) == 5 and len(people) == 5, people  # distinct people
+        assert len({tuple(a.shape.tolist()) for a in world.crowd.avatars.values()}) >= 4  # of distinct builds
+        assert page.eval_on_selector("#steer-all", "c => c.checked")
+        page.evaluate("document.activeElement.blur()")  # keys typed into a field do not walk (as a user clicks the view)
+        page.keyboard.down("KeyW")  # the whole crowd follows the keyboard
+        deadline = time.time() + 15
+        while time.time() < deadline and sum(a.v_goal is not None for a in world.crowd.avatars.values()) < 5:
+            time.sleep(0.1)
+        assert all(a.v_goal is not None for a in world.crowd.avatars.values())
+        time.sleep(3.0)
+        page.screenshot(path=str(artifacts / "studio-personas.png"))
+        page.keyboard.up("KeyW")

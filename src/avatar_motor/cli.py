@@ -347,6 +347,7 @@ def _generate(a) -> int:
     if out.suffix.lower() not in (".bvh", ".glb", ".npz"):
         raise ValueError(f"--out {out}: use a .bvh, .glb or .npz file name")
     labels = _timed_args(a.label, "--label", lambda v: None if v.lower() in ("none", "free") else v)
+    personas = _timed_args(a.persona, "--persona", lambda v: None if v.strip().lower() == "none" else v)
     targets = _timed_args(a.target, "--target", _parse_xz)
     forces = _timed_args(a.force, "--force", _parse_force)
     balls = _timed_args(a.ball, "--ball", _parse_ball)
@@ -354,6 +355,11 @@ def _generate(a) -> int:
         raise ValueError("--force and --ball act on a simulated body: add --physics")
     motor = load_checkpoint(a.model)
     init, shape = load_init(a.init) if a.init else (None, None)
+    if a.shape:
+        from .body.skeleton import SHAPE_DIM
+        shape = torch.tensor(_floats(a.shape, SHAPE_DIM, "--shape"))
+        if init is not None:
+            raise ValueError("--shape and --init both set the body: the initial frame's body is its file's")
     crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptors(a, motor), _range_of_motion())
     i = crowd.spawn(init, shape)
     crowd.set_physics(i, a.physics)
@@ -367,6 +373,8 @@ def _generate(a) -> int:
             crowd.impulse(i, impulses.pop(0)[1])
         while labels and labels[0][0] <= t:
             crowd.set_label(i, labels.pop(0)[1], a.adaptor_scale)
+        while personas and personas[0][0] <= t:
+            crowd.set_persona(i, personas.pop(0)[1])
         while targets and targets[0][0] <= t:
             crowd.set_target(i, targets.pop(0)[1], a.adaptor_scale)
         while forces and forces[0][0] <= t:
@@ -606,6 +614,81 @@ def _named_adaptors(specs: list[str], motor, guidance: str):
     return out
 
 
+def _style_evaluators(caches, classes: list[str], seconds: float, steps: int, seeds: list[int]):
+    """Evaluators of the style label trained on the labelled clips but one in four (by file name,
+    per class), and their accuracy on those: the ceiling for generated motion. The same split and
+    cache as `eval actions --label-key style`."""
+    import torch
+    from .data.cache import default_cache_dir
+    from .data.dataset import SegmentConfig, SegmentDataset
+    from .eval.adaptation import r_precisions, train_evaluators
+    key = "style"
+    clips = sorted((c for m in caches for c in m.clips if c["labels"].get(key) in classes), key=lambda c: c["key"])
+    check = {c["key"] for lb in classes for c in [c for c in clips if c["labels"][key] == lb][3::4]}
+
+    def labelled(keep):
+        return SegmentDataset(caches, SegmentConfig(frames=int(seconds * 30), split="all", mirror=False),
+                              clip_filter=lambda c: c["labels"].get(key) in classes and keep(c["key"]))
+    encs = train_evaluators(labelled(lambda k: k not in check), key, classes, seconds, steps, seeds,
+                            progress=lambda m: print(m, flush=True), cache=default_cache_dir().parent / "evaluators")
+    if not check:
+        raise ValueError("fewer than 4 clips per style: none left to check the evaluator on")
+    held = labelled(lambda k: k in check)
+    X, _, clip = held.sample_indexed(min(512, 8 * len(held.clip_labels)), torch.Generator().manual_seed(seeds[0]))
+    y = torch.tensor([classes.index(held.clip_labels[int(k)][key]) for k in clip])
+    return encs, r_precisions(encs, X, y, canonical=True)["R_precision"], len(check)
+
+
+def _eval_persona(a) -> int:
+    import json
+    from .eval.adaptation import format_rows
+    from .eval.control import initial_states
+    from .eval.persona import eval_persona, methods_for
+    from .model.adaptor import load_adaptor
+    from .model.checkpoint import load_checkpoint
+
+    motor = load_checkpoint(a.model)
+    if not motor.net.cfg.persona:
+        raise ValueError(f"--model {a.model} has no persona tokens; give the persona model (configs/persona.json)")
+    base = load_checkpoint(a.base) if a.base else None
+    styles = load_adaptor(a.styles, base.net) if a.styles and base is not None else None
+    caches = _caches(a.data or ["dataset-2"])
+    classes = sorted({c["labels"]["style"] for m in caches for c in m.clips if "style" in c["labels"]})
+    if styles is not None and sorted(styles.cfg.labels) != classes:
+        raise ValueError(f"the style adaptor knows {styles.cfg.labels}, the data's styles are {classes}")
+    if a.evaluators < 1:
+        raise ValueError(f"--evaluators must be 1 or more, not {a.evaluators}")
+    out = {}
+    if not a.skip_table:
+        encs, real, n_real = _style_evaluators(caches, classes, a.seconds, a.encoder_steps,
+                                               [a.seed + k for k in range(a.evaluators)])
+        init, shapes, what = initial_states(caches, a.n, a.seed)
+        rows = eval_persona(methods_for(motor, base, styles), encs, init, shapes, classes, a.seconds, a.seed,
+                            _runtime_config(a), a.speed)
+        print(format_rows(f"persona (MotionPersona Table 3): {a.n} {what} x {len(classes)} styles x {a.seconds:g} s; "
+                          f"evaluator(s) read {n_real} real held-out clips at CCA {real:.3f} (chance {1 / len(classes):.3f}); "
+                          f"steered forward at {a.speed:g} m/s for TPE/TDE",
+                          rows, ["CCA", "R@3", "CCA_steered", "FSD_cm", "ASR", "TPE_m", "TDE_rad"]), flush=True)
+        out.update(real_CCA=real, rows=rows)
+    if a.shape_png:
+        from .eval.persona import stride_by_leg
+        from .viz import stride_plot
+        legs = [-2.0, -1.0, 0.0, 1.0, 2.0]
+        text = "an ordinary adult in a neutral mood"
+        series = {f"persona: {text!r}": stride_by_leg(motor, text, legs, seed=a.seed, cfg=_runtime_config(a))}
+        if base is not None:
+            series["base (no persona)"] = stride_by_leg(base, None, legs, seed=a.seed, cfg=_runtime_config(a))
+        for name, rs in series.items():
+            print(f"{name}: " + ", ".join(f"leg {r['leg_m']:.3f} m -> stride {r['stride_m']:.3f} m "
+                                          f"(FSD {r['FSD_cm']:.2f} cm)" for r in rs))
+        stride_plot(series, a.shape_png)
+        print(f"stride against leg length: {a.shape_png}")
+        out["strides"] = series
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
 def _eval_adaptation(a) -> int:
     from .eval.adaptation import TARGETS, eval_actions, eval_reach, format_confusion, format_rows, r_precisions, train_evaluators
     from .data.cache import default_cache_dir
@@ -770,6 +853,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "repeatable; default: the adaptors shipped in models/ for the model's base; 'none' for none)")
     _add_guidance_arg(g)
     g.add_argument("--label", action="append", help="LABEL[@SECONDS] with an action adaptor (repeatable)")
+    g.add_argument("--persona", action="append", help="'DESCRIPTION[@SECONDS]' who the avatar is, with a persona model "
+                   "(--model models/primal-bandai-persona), e.g. 'a weary old man'; none releases (repeatable)")
+    g.add_argument("--shape", help="body shape: 6 numbers, " + ", ".join(["stature", "leg_length", "torso_length",
+                   "arm_length", "shoulder_width", "hip_width"]) + " (0 = an average adult; one step: 10 cm of "
+                   "stature, +5 %% of a length, +8 %% of a width)")
     g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
                    help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the guidance weight (a second, batched network pass; see --guidance)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
@@ -825,6 +913,24 @@ def build_parser() -> argparse.ArgumentParser:
         _add_runtime_args(e)
         e.add_argument("--seed", type=int, default=0)
         e.set_defaults(func=_eval_adaptation)
+    eq = ev.add_parser("persona", help="persona model: character classification (CCA, R@3), trajectory (TPE/TDE), "
+                       "foot sliding, against the base with the style adaptor (MotionPersona Table 3)")
+    eq.add_argument("--model", default=str(MODELS / "primal-bandai-persona"), help="the persona model")
+    eq.add_argument("--base", default=str(BASE_MODEL), help="the base for the reference rows ('' to skip)")
+    eq.add_argument("--styles", default=str(MODELS / "primal-bandai-styles"), help="the base's style adaptor ('' to skip)")
+    eq.add_argument("--data", nargs="*", help="the labelled motion caches (default: dataset-2, whose 7 styles are read)")
+    eq.add_argument("--n", type=int, default=45)
+    eq.add_argument("--seconds", type=float, default=3.0)
+    eq.add_argument("--speed", type=float, default=1.0, help="goal speed (m/s) of the steered rollouts")
+    eq.add_argument("--evaluators", type=int, default=1)
+    eq.add_argument("--encoder-steps", type=int, default=600)
+    _add_runtime_args(eq)
+    eq.add_argument("--seed", type=int, default=0)
+    eq.add_argument("--json", help="write the rows as JSON")
+    eq.add_argument("--shape-png", help="also: stride length against leg length, the same description and goal on "
+                    "five leg lengths (the persona model and the base), plotted to this file")
+    eq.add_argument("--skip-table", action="store_true", help="with --shape-png: only the stride measurement")
+    eq.set_defaults(func=_eval_persona)
     ep = ev.add_parser("physics", help="physics mode (DROP): push and ball series, ghost forces, energies, ablations")
     ep.add_argument("--model", default=str(DEFAULT_MODEL))
     ep.add_argument("--n", type=int, default=16, help="rollouts per condition")

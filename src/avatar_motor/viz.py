@@ -125,3 +125,26 @@ def target_paths(paths: dict[str, np.ndarray], targets: list[tuple[float, float]
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def stride_plot(series: dict[str, list[dict]], path: str | Path) -> None:
+    """Stride length against leg length (eval persona --shape-png), one line per model, with the
+    line through the origin that a stride in proportion to the leg would follow from the middle body."""
+    fig, ax = plt.subplots(figsize=(5.2, 4.0))
+    for name, rows in series.items():
+        legs = np.array([r["leg_m"] for r in rows])
+        st = np.array([r["stride_m"] for r in rows])
+        ax.plot(legs, st, "o-", label=name)
+        mid = len(rows) // 2
+        if st[mid] > 0:
+            ax.plot(legs, st[mid] * legs / legs[mid], ":", color=ax.lines[-1].get_color(), alpha=0.6)
+    ax.set_xlabel("leg length, hip to ankle (m)")
+    ax.set_ylabel("stride length (m)")
+    ax.set_title("same description and goal (1.2 m/s), five bodies\n(dotted: in proportion to the leg)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -172,6 +172,7 @@ function connect() {
       $("licence").textContent = msg.licence;
       buildPresets(msg.presets);
       buildLabels(msg.adaptors);
+      $("persona-panel").style.display = msg.persona ? "" : "none";
       $("warn").textContent = "";
     } else if (msg.type === "stats") {
       // stalls: ticks at which generation had no frame ready (the avatar held its pose)
@@ -285,6 +286,52 @@ function buildLabels(adaptors) {
   const reach = (adaptors || []).find((a) => a.control === "target");
   $("magnet-mode").textContent = reach ? `the reaching adaptor (${reach.name}) walks there` : "a velocity goal walks there";
 }
+// ---------------------------------------------------------------- personas (a persona model)
+// who each avatar is, in words; the crowd button spawns distinct people of distinct builds in a row
+const PERSONAS = [
+  ["a weary old man", [-0.5, -0.5, 0, 0, 0, 0]],
+  ["an energetic teenager", [-0.8, 0.5, 0, 0, -0.5, 0]],
+  ["a graceful, elegant woman", [-0.8, 0.3, 0, 0, -1.2, 0.8]],
+  ["a broad, tough man who takes up space", [1.0, 0, 0, 0, 1.5, 0]],
+  ["someone utterly drained and short of breath", [0, 0, 0, 0, 0, 0]],
+  ["an ordinary adult in a neutral mood", [0.3, 0, 0, 0, 0, 0]],
+  ["a proud person, head held high", [0.8, 0.5, 0.5, 0, 0.5, 0]],
+  ["a sad person who has just lost something dear", [-0.3, 0, 0, 0, 0, 0]],
+  ["a timid person lacking confidence", [-1.0, 0, 0, 0, -0.5, 0]],
+  ["an angry person, furious and tense", [0.5, 0, 0, 0, 0.8, 0]],
+  ["a small-time street thug acting tough", [0, 0, 0, 0.5, 0.5, 0]],
+  ["a huge, heavy giant", [2.0, 0.5, 0.5, 0.5, 1.5, 1.0]],
+  ["a happy person in a wonderful mood", [0, 0, 0, 0, 0, 0]],
+  ["a small child, playful and restless", [-2.5, -1.0, -1.0, -1.0, -1.0, -1.0]],
+  ["an elderly person whose joints ache with age", [-0.8, -0.5, 0, 0, -0.3, 0.3]],
+  ["a musical performer moving like on a stage", [0, 0.5, 0, 0.5, 0, 0]],
+];
+const personaOf = new Map();  // avatar -> description (shown in the list)
+async function setPersona(avatar, description) {
+  const r = await send({ type: "persona", avatar, description });
+  if (r && r.ok) { if (description) personaOf.set(avatar, description); else personaOf.delete(avatar); }
+  return r;
+}
+$("persona-set").onclick = () => setPersona(state.selected, $("persona-text").value.trim() || null);
+$("persona-clear").onclick = () => setPersona(state.selected, null);
+$("persona-crowd").onclick = async () => {
+  const n = Number($("persona-count").value) || 8;
+  const p = state.pelvis() || [0, 0, 0];
+  for (let k = 0; k < Math.min(n, PERSONAS.length); k++) {
+    const [text, shape] = PERSONAS[k];
+    const r = await send({ type: "spawn", position: [p[0] + 1.2 * (k - (n - 1) / 2), p[2] + 2.0], shape });
+    if (!r || !r.ok) break;
+    await setPersona(r.avatar, text);
+  }
+  $("steer-all").checked = true;
+};
+for (const [text] of PERSONAS.slice(0, 6)) {
+  const b = document.createElement("button");
+  b.textContent = text;
+  b.onclick = () => { $("persona-text").value = text; setPersona(state.selected, text); };
+  $("persona-examples").appendChild(b);
+}
+
 $("add").onclick = async () => {
   const p = state.pelvis() || [0, 0, 0];
   const r = await send({ type: "spawn", position: [p[0] + 1.2, p[2]] });
@@ -376,9 +423,16 @@ function steer() {
   let goal = null;
   if (d.length() > 0.1) { d.normalize().multiplyScalar(run ? 3.0 : 1.3); goal = [+d.x.toFixed(2), +d.z.toFixed(2)]; }
   const key = JSON.stringify(goal);
-  if (key !== lastGoal) { lastGoal = key; send({ type: "goal", avatar: state.selected, velocity: goal }); }
+  if (key !== lastGoal) {
+    lastGoal = key;
+    // "steer all": the crowd walks the same way (each avatar follows the stick in its own style)
+    const who = $("steer-all").checked ? [...bodies.keys()] : [state.selected];
+    for (const a of who) send({ type: "goal", avatar: a, velocity: goal });
+  }
 }
-window.addEventListener("keydown", (e) => { keys.add(e.code); if (e.code.startsWith("Arrow")) e.preventDefault(); steer(); });
+// typing a description must not walk the avatar
+const typing = (e) => e.target && (e.target.tagName === "INPUT" || e.target.tagName === "TEXTAREA");
+window.addEventListener("keydown", (e) => { if (typing(e)) return; keys.add(e.code); if (e.code.startsWith("Arrow")) e.preventDefault(); steer(); });
 window.addEventListener("keyup", (e) => { keys.delete(e.code); steer(); });
 
 // ---------------------------------------------------------------- pushing and the magnet

@@ -226,7 +226,8 @@ def format_confusion(rows: list[dict], classes: list[str]) -> str:
 
 
 def format_rows(title: str, rows: list[dict], keys: list[str]) -> str:
-    out = [title, f"{'method':14s} " + " ".join(f"{k:>12s}" for k in keys)]
+    w = max([14] + [len(r["method"]) for r in rows])
+    out = [title, f"{'method':{w}s} " + " ".join(f"{k:>12s}" for k in keys)]
     for r in rows:
-        out.append(f"{r['method']:14s} " + " ".join(f"{r[k]:12.3f}" if not math.isnan(r[k]) else f"{'nan':>12s}" for k in keys))
+        out.append(f"{r['method']:{w}s} " + " ".join(f"{r[k]:12.3f}" if not math.isnan(r[k]) else f"{'nan':>12s}" for k in keys))
     return "\n".join(out)

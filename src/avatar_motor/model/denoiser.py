@@ -28,6 +28,10 @@ class DenoiserConfig:
     ff: int = 1024
     dropout: float = 0.1
     latent: int = 0  # size of EMDM's latent z (0: a plain denoiser); z enters the condition token
+    persona: bool = False  # text, shape and trajectory condition tokens (model/persona.py); incontext only
+    # in-diffusion blending (MotionPersona Eq. 4): the first `blend` noisy frames the network sees are
+    # pulled towards the initial state, linearly from full to none (0: off)
+    blend: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -44,7 +48,7 @@ class DenoiserConfig:
             raise ValueError(f"unknown denoiser fields {unknown}")
         cfg = cls(**d)
         ints = {"state_dim": (STATE_DIM, STATE_DIM), "frames": (2, 240), "width": (8, 4096), "depth": (1, 64),
-                "heads": (1, 64), "ff": (8, 16384), "latent": (0, 1024)}
+                "heads": (1, 64), "ff": (8, 16384), "latent": (0, 1024), "blend": (0, 240)}
         for name, (lo, hi) in ints.items():
             v = getattr(cfg, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
@@ -53,6 +57,12 @@ class DenoiserConfig:
             raise ValueError(f"denoiser field 'arch' must be 'incontext' or 'adaln', got {cfg.arch!r}")
         if isinstance(cfg.dropout, bool) or not isinstance(cfg.dropout, (int, float)) or not 0 <= cfg.dropout < 1:
             raise ValueError(f"denoiser field 'dropout' must be a number in [0, 1), got {cfg.dropout!r}")
+        if not isinstance(cfg.persona, bool):
+            raise ValueError(f"denoiser field 'persona' must be true or false, got {cfg.persona!r}")
+        if cfg.persona and cfg.arch != "incontext":
+            raise ValueError("persona tokens need the 'incontext' denoiser arch")
+        if cfg.blend > cfg.frames:
+            raise ValueError(f"denoiser 'blend' {cfg.blend} is more than its {cfg.frames} frames")
         if cfg.width % cfg.heads:
             raise ValueError(f"denoiser 'width' {cfg.width} must be a multiple of 'heads' {cfg.heads}")
         params = cfg.depth * (4 * cfg.width ** 2 + 2 * cfg.width * cfg.ff)
@@ -76,10 +86,12 @@ class Attention(nn.Module):
         self.out = nn.Linear(width, width)
         self.dropout = dropout
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """mask (B, N) bool: the tokens that may be attended to (None: all)."""
         B, N, C = x.shape
         q, k, v = self.qkv(x).view(B, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
-        y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        m = None if mask is None else mask[:, None, None, :]
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=m, dropout_p=self.dropout if self.training else 0.0)
         return self.out(y.transpose(1, 2).reshape(B, N, C))
 
 
@@ -105,9 +117,9 @@ class Block(nn.Module):
             nn.init.zeros_(self.modulation[1].weight)
             nn.init.zeros_(self.modulation[1].bias)
 
-    def forward(self, x: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, cond: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> torch.Tensor:
         if not self.adaln:
-            x = x + self.drop(self.attn(self.norm1(x)))
+            x = x + self.drop(self.attn(self.norm1(x), mask))
             return x + self.drop(self.ff(self.norm2(x)))
         sh1, sc1, g1, sh2, sc2, g2 = self.modulation(cond)[:, None].chunk(6, -1)
         x = x + g1 * self.drop(self.attn(self.norm1(x) * (1 + sc1) + sh1))
@@ -137,6 +149,9 @@ class Denoiser(nn.Module):
                                        nn.Linear(w, w))
             nn.init.zeros_(self.z_mlp[-1].weight)
             nn.init.zeros_(self.z_mlp[-1].bias)
+        if cfg.persona:
+            from .persona import PersonaTokens
+            self.persona = PersonaTokens(w, cfg.frames)
 
     def condition(self, t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         """Summed time + initial-state (+ latent) embedding (B, width). A latent network given no z
@@ -146,22 +161,41 @@ class Denoiser(nn.Module):
             c = c + self.z_mlp(z if z is not None else x0.new_zeros(len(x0), self.cfg.latent))
         return c
 
-    def tokens(self, x_t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+    def blended(self, x_t: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        """MotionPersona's in-diffusion blending (Eq. 4) of the noisy frames with the initial state,
+        inside the network so that training, every sampler and the ONNX export see the same."""
+        M = self.cfg.blend
+        if not M:
+            return x_t
+        w = torch.zeros(x_t.shape[1], dtype=x_t.dtype)
+        w[:M] = torch.linspace(1.0, 0.0, M + 1, dtype=x_t.dtype)[:M]
+        return x_t + w[:, None] * (x0[:, None] - x_t)
+
+    def tokens(self, x_t: torch.Tensor, cond: torch.Tensor, persona=None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The token sequence and its key mask (None: every token may be attended to)."""
         h = self.in_proj(x_t)
         if self.cfg.arch == "incontext":
             h = torch.cat((cond[:, None], h), 1)
-        return h + self.pos
+        h = h + self.pos
+        if persona is None or not self.cfg.persona or not bool(persona.present.any()):
+            return h, None
+        tok, present = self.persona(persona, h.dtype)
+        h = torch.cat((h[:, :1], tok, h[:, 1:]), 1)
+        mask = torch.cat((present.new_ones(len(h), 1), present, present.new_ones(len(h), x_t.shape[1])), 1)
+        return h, mask
 
     def head(self, h: torch.Tensor) -> torch.Tensor:
         if self.cfg.arch == "incontext":
-            h = h[:, 1:]
+            h = h[:, -self.cfg.frames:]
         return self.out(self.norm_out(h))
 
-    def forward(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None,
+                persona=None) -> torch.Tensor:
         """t (B,) long, x_t (B, frames, D) noisy normalized segment, x0 (B, D) normalized initial
-        state, z (B, latent) EMDM's latent (latent networks only)."""
+        state, z (B, latent) EMDM's latent (latent networks only), persona a PersonaCond (persona
+        networks; None: no condition)."""
         cond = self.condition(t, x0, z)
-        h = self.tokens(x_t, cond)
+        h, mask = self.tokens(self.blended(x_t, x0), cond, persona)
         for blk in self.blocks:
-            h = blk(h, cond)
+            h = blk(h, cond, mask)
         return self.head(h)

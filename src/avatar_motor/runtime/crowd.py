@@ -65,6 +65,10 @@ class RuntimeConfig:
     # denoising steps per segment; 0: the model's own (8 for a DDPM base; a few-step model's
     # checkpoint names its default, and it samples in 1, 2 or 4)
     steps: int = 0
+    # a persona model's text guidance (classifier-free, against the same conditions without the
+    # text): 1 = as trained; above 1 the persona reads stronger, at one more batched pass for the
+    # avatars that have one
+    persona_scale: float = 1.0
     # post-processing stages by name, in order (runtime/stages.py); a body stage (leg_ik or fk)
     # always ends the list, so every frame that leaves the runtime is one body
     stages: tuple[str, ...] = DEFAULT_STAGES
@@ -140,6 +144,9 @@ class AvatarState:
     label: int | None = None
     control_scale: float = 1.0  # the adaptor's strength for this avatar's label or target (CFG weight)
     target: torch.Tensor | None = None  # (2,) world x, z for a reaching adaptor
+    # who the avatar is, for a persona model (model/persona.py): a description and its embedding
+    persona: str | None = None
+    persona_text: torch.Tensor | None = None  # (TEXT_DIM,)
     near_target: bool = False  # came within face_target_beyond of it: no facing goal until 2x that away
     epoch: int = 0  # bumped by every interruption
     # coalescing (see Crowd.cut): a cut's segment is being made; a further change waits for it
@@ -346,7 +353,7 @@ class Crowd:
         a.regenerating = True
 
     def _plan(self, a: AvatarState) -> tuple:
-        return (a.v_goal, a.facing_goal, (a.adaptor, a.label), a.target, a.control_scale)
+        return (a.v_goal, a.facing_goal, (a.adaptor, a.label, a.persona), a.target, a.control_scale)
 
     def _differs(self, a: AvatarState) -> bool:
         """Whether a's controls differ from those its latest segment was made for beyond the
@@ -376,6 +383,21 @@ class Crowd:
             f = validate_vector(facing, 2, "facing (fx, fz)") if facing is not None else v
             n = float(f.norm())
             a.facing_goal = torch.tensor([f[0] / n, 0.0, f[1] / n]) if n > 1e-6 else None
+        self._changed(a)
+
+    def set_persona(self, i: int, description: str | None) -> None:
+        """Who avatar i is, in words ("a weary old man"), for a persona model; None releases it (the
+        model then moves it with no text, as its base would). The body shape is the avatar's own."""
+        a = self._get(i)
+        if description is None:
+            a.persona, a.persona_text = None, None
+        else:
+            if not self.motor.net.cfg.persona:
+                raise ValueError(f"model {self.motor.name!r} has no persona tokens; serve a persona model "
+                                 "(models/primal-bandai-persona, built with configs/persona.json)")
+            from ..model.text import embed_texts
+            a.persona_text = embed_texts([description])[0]
+            a.persona = description.strip()
         self._changed(a)
 
     def set_label(self, i: int, label: str | None, scale: float = 1.0) -> None:
@@ -609,7 +631,7 @@ class Crowd:
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
             control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
             adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[a.v_goal for a in avs],
-            facing_goal=[self._facing_goal(a) for a in avs], physics=jobs)
+            facing_goal=[self._facing_goal(a) for a in avs], physics=jobs, personas=[a.persona_text for a in avs])
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target

@@ -76,3 +76,37 @@ def facing_loss_and_grad(x: torch.Tensor, r_goal: torch.Tensor) -> tuple[torch.T
     grad[:, -1, _J0 + 3 * _LH:_J0 + 3 * _LH + 3] = dl
     grad[:, -1, _J0 + 3 * _RH:_J0 + 3 * _RH + 3] = -dl
     return loss, grad
+
+
+# how fast a steered trajectory turns from the body's motion to the goal's (a critically damped
+# approach, as motion-matching controllers predict the stick's path): half the difference is
+# gone after this many seconds
+TRAJECTORY_HALFLIFE = 0.25
+
+
+def goal_trajectory(x0: torch.Tensor, v_goal: torch.Tensor, f_goal: torch.Tensor | None, frames: int,
+                    halflife: float = TRAJECTORY_HALFLIFE) -> torch.Tensor:
+    """The persona model's trajectory condition (B, frames, 4) for a goal, in the canonical frame of
+    initial states x0 (B, 267): the root leaves where it stands with the velocity it has and
+    approaches v_goal (B, 3), its facing approaches f_goal (B, 3; None or a zero row: keeps its own), each
+    exponentially with `halflife`. Columns: x, z, sin yaw, cos yaw (model/persona.trajectory_of)."""
+    from ..body.motion_state import FPS
+    from ..model.persona import trajectory_of
+    B = len(x0)
+    lam = 0.6931471805599453 / halflife
+    t = torch.arange(1, frames + 1, dtype=x0.dtype) / FPS  # (F,)
+    decay = torch.exp(-lam * t)
+    start = trajectory_of(x0[:, None])[:, 0]  # (B, 4)
+    v0 = x0[..., SLICES["velocities"]].reshape(B, 22, 3)[:, 0, [0, 2]]  # the pelvis, m/s
+    vg = v_goal[:, [0, 2]].to(x0.dtype)
+    # integral of vg + (v0 - vg) e^{-lam s} from 0 to t
+    pos = start[:, None, :2] + vg[:, None] * t[None, :, None] + ((v0 - vg) / lam)[:, None] * (1 - decay)[None, :, None]
+    yaw0 = torch.atan2(start[:, 2], start[:, 3])
+    if f_goal is None:
+        yaw = yaw0[:, None].expand(B, frames)
+    else:
+        f = f_goal.to(x0.dtype)
+        yg = torch.where(f[:, [0, 2]].norm(dim=-1) > 1e-6, torch.atan2(f[:, 0], f[:, 2]), yaw0)
+        d = torch.remainder(yaw0 - yg + torch.pi, 2 * torch.pi) - torch.pi  # the short way round
+        yaw = yg[:, None] + d[:, None] * decay[None]
+    return torch.cat((pos, torch.sin(yaw)[..., None], torch.cos(yaw)[..., None]), -1)

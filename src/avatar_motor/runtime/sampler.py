@@ -12,7 +12,8 @@ import torch
 from ..body import rotations as rot
 from ..body.motion_state import SLICES, STATE_DIM, Transform
 from ..model.checkpoint import Motor
-from .guidance import facing_loss_and_grad, facing_of, move_loss_and_grad, path_loss_and_grad
+from ..model.persona import TEXT_DIM, TRAJ_FEATURES, PersonaCond
+from .guidance import facing_loss_and_grad, facing_of, goal_trajectory, move_loss_and_grad, path_loss_and_grad
 from ..model import fewstep
 from ..model.onnx import onnx_denoiser
 from .stages import SegmentBatch
@@ -62,8 +63,9 @@ class Sampler:
                                  f"{motor.sampler.get('base')!r}; retrain it on that base")
         if cfg.backend not in BACKENDS:
             raise ValueError(f"runtime backend must be one of {BACKENDS}, got {cfg.backend!r}")
-        # the base network as ONNX Runtime runs it (an adaptor's avatars use torch)
-        self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" else motor.net
+        # the base network as ONNX Runtime runs it (an adaptor's avatars use torch; so does a persona
+        # network, whose condition tokens the exported graph does not take)
+        self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona else motor.net
 
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
         """Segments (B, N, 267), float32, in the canonical frames whose world transforms are tf, from
@@ -96,7 +98,7 @@ class Sampler:
         cond = motor.norm.encode(x0_cond.float())
         guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float())
         N = motor.net.cfg.frames
-        denoise = self._denoiser(batch, tf, cond, adaptor)
+        denoise = self._denoiser(batch, tf, cond, adaptor, x0c)
         if cancelled is not None:
             inner = denoise
 
@@ -113,11 +115,25 @@ class Sampler:
                                    motor.net.cfg.latent)
         return motor.norm.decode(seg_n)
 
-    def _denoiser(self, batch: SegmentBatch, tf, cond, ad):
+    def _denoiser(self, batch: SegmentBatch, tf, cond, ad, x0c):
         """The base network, or the adaptor ad with each avatar's controls (every row of the batch
         is one it steers)."""
         net = self.net
         if ad is None:
+            if self.motor.net.cfg.persona:
+                persona = self._persona(batch, tf, x0c)
+                w = self.cfg.persona_scale
+                if w == 1.0 or not bool(persona.present[:, 0].any()):
+                    return lambda x_t, t, z=None: net(t, x_t, cond, z, persona)
+                # text guidance: both passes in one batch; rows without a text come out unchanged
+                both = PersonaCond.cat([persona, persona.without("text")])
+                cond2 = torch.cat((cond, cond))
+
+                def guided(x_t, t, z=None):
+                    z2 = None if z is None else torch.cat((z, z))
+                    c, u = net(torch.cat((t, t)), torch.cat((x_t, x_t)), cond2, z2, both).chunk(2)
+                    return u + w * (c - u)
+                return guided
             if self.motor.net.cfg.latent:
                 return lambda x_t, t, z=None: net(t, x_t, cond, z)
             return lambda x_t, t, z=None: net(t, x_t, cond)
@@ -133,6 +149,24 @@ class Sampler:
                     y[k] = local[[0, 2]]
         s = scale[:, None, None]
         return lambda x_t, t, z=None: ad(t, x_t, cond, y, scale=s)
+
+    def _persona(self, batch: SegmentBatch, tf, x0c: torch.Tensor) -> PersonaCond:
+        """A persona network's conditions: each avatar's text (if it has a persona), its body shape,
+        and, where a goal steers it, the trajectory toward that goal (guidance.goal_trajectory)."""
+        B, N = len(batch), self.motor.net.cfg.frames
+        texts = batch.personas or [None] * B
+        has_text = torch.tensor([e is not None for e in texts])
+        text = torch.stack([e if e is not None else torch.zeros(TEXT_DIM) for e in texts]).float()
+        has_goal = torch.tensor([v is not None for v in batch.v_goal])
+        traj = torch.zeros(B, N, TRAJ_FEATURES)
+        if bool(has_goal.any()):
+            Rt = tf.R.transpose(-1, -2)
+            z3 = torch.zeros(3, dtype=torch.float64)
+            v = (Rt @ torch.stack([z3 if g is None else g.double() for g in batch.v_goal])[..., None])[..., 0]
+            f = (Rt @ torch.stack([z3 if g is None else g.double() for g in batch.facing_goal])[..., None])[..., 0]
+            traj = goal_trajectory(x0c.double(), v, f, N).float()
+        present = torch.stack((has_text, torch.ones(B, dtype=torch.bool), has_goal), 1)
+        return PersonaCond(text, batch.shapes.float(), traj, present)
 
     def _steer(self, x0c: torch.Tensor, v_goals: list, f_goals: list, Rt: torch.Tensor) -> None:
         """Steering as an impulse (our addition): the network starts each segment already moving the

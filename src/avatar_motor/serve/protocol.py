@@ -66,6 +66,8 @@ _FIELDS = {
                 "speed": lambda v: _num(v, "speed", 0.1, 6), "scale": lambda v: _num(v, "scale", 0, 10)}),
     "label": ({"avatar": lambda v: _int(v, "avatar"), "label": lambda v: None if v is None else _str(v, "label")},
               {"scale": lambda v: _num(v, "scale", 0, 10)}),
+    "persona": ({"avatar": lambda v: _int(v, "avatar"),
+                 "description": lambda v: None if v is None else _str(v, "description", 300)}, {}),
     "reset": ({}, {"avatar": lambda v: _int(v, "avatar")}),
     # physics mode (DROP): the body is simulated, the model its control
     "physics": ({"avatar": lambda v: _int(v, "avatar"), "on": lambda v: _bool(v, "on")}, {}),
@@ -82,9 +84,9 @@ _FIELDS = {
 COMMANDS = sorted(_FIELDS)
 
 
-def _str(v, what: str) -> str:
-    if not isinstance(v, str) or not 0 < len(v) <= 200:
-        raise ProtocolError(f"{what} must be a non-empty string")
+def _str(v, what: str, longest: int = 200) -> str:
+    if not isinstance(v, str) or not 0 < len(v.strip()) or len(v) > longest:
+        raise ProtocolError(f"{what} must be a non-empty string of at most {longest} characters")
     return v
 
 

@@ -273,6 +273,7 @@ class Server:
                 "joint_names": JOINT_NAMES, "parents": PARENTS, "presets": sorted(IMPULSE_PRESETS),
                 "commands": P.COMMANDS, "avatars": self.world.crowd.ids(), "adaptors": self._adaptor_info(),
                 "licence": self.world.motor.config.get("licence", ""),
+                "persona": bool(self.world.motor.net.cfg.persona),
                 "limits": {"avatars": self.world.max_avatars, "avatars_per_client": self.per_client,
                            "commands_per_second": self.rate, "burst": BURST}}
 

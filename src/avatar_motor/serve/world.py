@@ -59,6 +59,9 @@ class World:
         # (Crowd._changed): served, set per command from the clock (frames_to_keep_now); offline
         # and in replays, from the script
         self.crowd.keep_on_cut = 2
+        if self.motor.net.cfg.persona:  # the text encoder loads in about a second: not at the first command
+            from ..model.text import embed_texts
+            embed_texts(["a person"])
         self.frame = 0
         self.targets: dict[int, Target] = {}
         self.history: dict[int, deque] = {}
@@ -147,6 +150,13 @@ class World:
         i = self._avatar(cmd)
         try:
             self.crowd.set_label(i, cmd["label"], float(cmd.get("scale", 1.0)))
+        except ValueError as e:
+            raise CommandError(str(e)) from None
+
+    def _cmd_persona(self, cmd):
+        i = self._avatar(cmd)
+        try:
+            self.crowd.set_persona(i, cmd["description"])
         except ValueError as e:
             raise CommandError(str(e)) from None
 

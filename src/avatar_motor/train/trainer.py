@@ -13,7 +13,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -27,6 +27,7 @@ from ..io.atomic import recover_folder, replace_folder, write_file
 from ..model.checkpoint import checkpoint_complete, load_checkpoint, save_checkpoint
 from ..model.denoiser import Denoiser, DenoiserConfig
 from ..model.diffusion import Diffusion
+from ..model.persona import TEXT_DIM, PersonaCond, trajectory_of
 from .losses import motion_loss
 
 LICENCE_NOTE = ("Trained on the Bandai Namco Research Motion Dataset (CC BY-NC 4.0): the weights are for "
@@ -57,6 +58,9 @@ class TrainConfig:
     # with init: keep its normalisation (continuing a model on added data) instead of computing
     # the data's (following re-imported data)
     init_stats: bool = False
+    # persona networks (model.persona): the chance that each condition (text, shape, trajectory)
+    # is left out of a training window, so that every one may be absent at run time
+    persona_dropout: float = 0.25
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     name: str = "avatar-motor-base"
@@ -65,6 +69,29 @@ class TrainConfig:
     @staticmethod
     def from_dict(d: dict) -> "TrainConfig":
         return config.from_dict(TrainConfig, d, "training config")
+
+
+class PersonaTexts:
+    """The training descriptions of each clip's style label (data/personas.py), embedded once."""
+
+    def __init__(self, ds: SegmentDataset):
+        from ..data.personas import DESCRIPTIONS, descriptions
+        from ..model.text import embed_texts
+        labels = sorted({lab.get("style") for lab in ds.clip_labels if lab.get("style") in DESCRIPTIONS})
+        self.sentences = [descriptions(lab) for lab in labels]
+        n = max((len(s) for s in self.sentences), default=1)
+        self.table = torch.zeros(len(labels) + 1, n, TEXT_DIM)  # the last row: no style
+        for i, ss in enumerate(self.sentences):
+            e = embed_texts(ss)
+            self.table[i] = e[torch.arange(n) % len(ss)]  # a label with fewer sentences repeats them
+        index = {lab: i for i, lab in enumerate(labels)}
+        self.clip_style = torch.tensor([index.get(lab.get("style"), len(labels)) for lab in ds.clip_labels])
+        self.none = len(labels)
+
+    def draw(self, clip: torch.Tensor, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        style = self.clip_style[clip]
+        pick = torch.randint(self.table.shape[1], (len(clip),), generator=gen)
+        return self.table[style, pick], style != self.none
 
 
 def resolve_caches(names: list[str]) -> list[Path]:
@@ -132,6 +159,8 @@ class Trainer:
         self.cache_paths = resolve_caches(cfg.data)
         caches = [MotionCache.load(p) for p in self.cache_paths]
         self.ds = SegmentDataset(caches, cfg.segment)
+        if cfg.model.persona:
+            self.texts = PersonaTexts(self.ds)
         if cfg.init_stats and not cfg.init:
             raise ValueError("init_stats keeps the init checkpoint's normalisation; set init to that checkpoint")
         self.norm = load_checkpoint(cfg.init).norm if cfg.init_stats else load_or_compute_stats(self.ds, self.cache_paths)
@@ -155,10 +184,14 @@ class Trainer:
         normalisation is recomputed (unless init_stats), so a model can follow re-imported data
         without starting over."""
         motor = load_checkpoint(folder)
-        if motor.net.cfg != self.cfg.model:
+        # a persona network may start from a base without persona tokens (or blending): the tokens
+        # start new, masked out when absent, so the start is the base computation
+        same = replace(self.cfg.model, persona=motor.net.cfg.persona, blend=motor.net.cfg.blend)
+        if motor.net.cfg != same or (motor.net.cfg.persona and not self.cfg.model.persona):
             raise ValueError(f"init checkpoint {folder} has model {motor.net.cfg}, the config asks for {self.cfg.model}; "
                              "warm start needs the same architecture")
-        self.net.load_state_dict(motor.net.state_dict())
+        missing, unexpected = self.net.load_state_dict(motor.net.state_dict(), strict=False)
+        assert not unexpected and all(k.startswith("persona.") for k in missing), (missing, unexpected)
 
     def _resume(self) -> None:
         saved = read_state(self.out / "checkpoint", self.state_dir)
@@ -205,16 +238,18 @@ class Trainer:
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg
         self.net.train()
-        x, shapes = self.ds.sample(cfg.batch, self.gen)
+        x, shapes, clip = self.ds.sample_indexed(cfg.batch, self.gen)
         t = torch.randint(self.diffusion.T, (cfg.batch,), generator=self.gen)
         noise = torch.randn(cfg.batch, cfg.segment.frames, x.shape[-1], generator=self.gen)
+        persona = self.persona_batch(x, shapes, clip) if cfg.model.persona else None
         if self.world > 1:  # every rank drew the global batch; keep this rank's slice
             sl = slice(self.rank * cfg.batch // self.world, (self.rank + 1) * cfg.batch // self.world)
             x, shapes, t, noise = x[sl], shapes[sl], t[sl], noise[sl]
+            persona = persona.select(sl) if persona is not None else None
         xn = self.norm.encode(x)
         x_init_n, target_n = xn[:, 0], xn[:, 1:]
         x_t = self.diffusion.q_sample(target_n, t, noise)
-        pred = self.model(t, x_t, x_init_n)
+        pred = self.model(t, x_t, x_init_n, None, persona)
         losses = motion_loss(pred, target_n, x[:, 0], shapes, self.norm, cfg.fk_weight, cfg.fkv_weight)
         for g in self.opt.param_groups:
             g["lr"] = self.lr_at(self.step)
@@ -228,6 +263,15 @@ class Trainer:
             dist.all_reduce(out)
             out /= self.world
         return {k: float(v) for k, v in zip(losses, out)}
+
+    def persona_batch(self, x: torch.Tensor, shapes: torch.Tensor, clip: torch.Tensor) -> PersonaCond:
+        """The windows' own conditions: a training description of the clip's style, the body shape
+        the window was posed on, the trajectory its root takes; each left out at persona_dropout,
+        and the text always where the clip has no style (DeepMimic)."""
+        text, has_text = self.texts.draw(clip, self.gen)
+        present = torch.rand(len(x), 3, generator=self.gen) >= self.cfg.persona_dropout
+        present[:, 0] &= has_text
+        return PersonaCond(text, shapes, trajectory_of(x[:, 1:]), present)
 
     def lr_at(self, step: int) -> float:
         cfg = self.cfg

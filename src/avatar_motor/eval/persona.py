@@ -1,0 +1,165 @@
+"""`eval persona` (MotionPersona Table 3, on our data): does the motion read as the described
+character, does it follow the steered trajectory, and do the feet stay planted.
+
+Characters are the Bandai dataset-2 styles; an evaluator trained on real clips of those styles
+(eval/adaptation.py, the same one `eval actions --label-key style` uses) reads each rollout of the
+exported body: CCA is its top-1 accuracy, R@3 the share whose style is among its three best.
+Steered rollouts walk toward a goal velocity in the body's forward direction; TPE is the mean
+distance (m) of the pelvis from the commanded path (the runtime's own goal_trajectory from the
+start), TDE the mean angle (rad) between the body's facing and the goal's, after the first second.
+FSD is foot sliding: the mean horizontal travel (cm per frame) of a foot joint while it is within
+5 cm of the ground.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..body.motion_state import FPS, canonical_transform, canonicalize, joints_of
+from ..data.personas import descriptions
+from ..runtime.crowd import RuntimeConfig
+from ..runtime.guidance import facing_of, goal_trajectory
+from . import metrics as M
+from .adaptation import canonical_joints
+from .realism import rollout
+
+
+def top_k(encoders: list, X: torch.Tensor, y: torch.Tensor, k: int) -> float:
+    """The share of motions X (world states) whose label y is among each evaluator's k best, averaged."""
+    J = canonical_joints(X)
+    out = []
+    with torch.no_grad():
+        for menc, lenc in encoders:
+            sim = menc(J[:, :menc.frames]) @ lenc(torch.arange(lenc.embed.num_embeddings)).T
+            best = sim.topk(k, dim=-1).indices
+            out.append(float((best == y[:, None]).any(-1).float().mean()))
+    return sum(out) / len(out)
+
+
+def fsd(J: torch.Tensor, height: float = 0.05) -> float:
+    """Foot sliding: mean horizontal travel (cm per frame) of the foot joints while they are low."""
+    f = J[..., M.FEET, :]
+    step = (f[..., 1:, :, :] - f[..., :-1, :, :])[..., [0, 2]].norm(dim=-1)
+    low = f[..., 1:, :, 1] < height
+    return float(100 * step[low].mean()) if bool(low.any()) else 0.0
+
+
+def trajectory_errors(X: torch.Tensor, goal: torch.Tensor) -> tuple[float, float]:
+    """TPE (m) and TDE (rad) of world rollouts X (n, T, 267) steered at world goal velocities
+    (n, 3) from their first frame; both over the frames after the first second."""
+    T = X.shape[1]
+    xc, tf = canonicalize(X[:, :1].double())  # the first frame in its own canonical frame, as the sampler sees it
+    x0c, Rt = xc[:, 0], tf.R.transpose(-1, -2)
+    g_c = (Rt @ goal.double()[..., None])[..., 0]
+    f_c = g_c / g_c.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    path_c = goal_trajectory(x0c, g_c, f_c, T - 1)[..., :2]  # (n, T-1, 2) canonical x, z
+    path = (tf.R[:, None] @ torch.stack((path_c[..., 0], torch.zeros_like(path_c[..., 0]), path_c[..., 1]), -1)[..., None])[..., 0]
+    path = path + tf.t[:, None]
+    pel = joints_of(X[:, 1:]).double()[:, :, 0]
+    after = int(FPS)
+    tpe = float((pel - path)[:, after:, [0, 2]].norm(dim=-1).mean())
+    z, _ = facing_of(X[:, 1 + after:])
+    r = (goal / goal.norm(dim=-1, keepdim=True))[:, None].to(z.dtype)
+    cos = (z * r).sum(-1).clamp(-1, 1)
+    return tpe, float(torch.acos(cos).mean())
+
+
+def _described(split: str):
+    """setup(crowd, avatar, k, label): the k-th description of the label's split."""
+    def setup(crowd, i, k, label):
+        ds = descriptions(label, split)
+        crowd.set_persona(i, ds[k % len(ds)])
+    return setup
+
+
+def methods_for(persona_motor, base_motor=None, styles_adaptor=None) -> dict:
+    """The rows: name -> (motor, adaptor, setup(crowd, avatar id, k, label) or None)."""
+    rows = {"persona, training descriptions": (persona_motor, None, _described("train")),
+            "persona, unseen descriptions": (persona_motor, None, _described("heldout")),
+            "persona, no description": (persona_motor, None, None)}
+    if base_motor is not None and styles_adaptor is not None:
+        rows["base + style adaptor"] = (base_motor, styles_adaptor, lambda crowd, i, k, label: crowd.set_label(i, label))
+    if base_motor is not None:
+        rows["base"] = (base_motor, None, None)
+    return rows
+
+
+def eval_persona(methods: dict, encoders: list, init: torch.Tensor, shapes: torch.Tensor, classes: list[str],
+                 seconds: float = 3.0, seed: int = 0, cfg: RuntimeConfig | None = None, speed: float = 1.0) -> list[dict]:
+    """One row per method: CCA and R@3 over the classes (unsteered rollouts), FSD and ASR over
+    them, and TPE/TDE of rollouts steered forward at `speed` m/s."""
+    cfg = cfg or RuntimeConfig()
+    frames = int(seconds * FPS)
+    fwd = canonical_transform(init.double()).R.float() @ torch.tensor([0.0, 0.0, 1.0])  # (n, 3) each body's forward
+    goal = fwd * speed
+    rows = []
+    for name, (motor, adaptor, setup) in methods.items():
+        Xs, ys, Gs = [], [], []
+        for c, label in enumerate(classes):
+            def controls(crowd, seg, label=label, steer=False):
+                if seg == 0:
+                    for k, i in enumerate(sorted(crowd.avatars)):
+                        if setup is not None:
+                            setup(crowd, i, k, label)
+                        if steer:
+                            crowd.set_goal(i, (float(goal[k, 0]), float(goal[k, 2])))
+            Xs.append(rollout(motor, init, shapes, frames, cfg, seed, controls, adaptor))
+            ys.append(torch.full((len(init),), c))
+            Gs.append(rollout(motor, init, shapes, frames, cfg, seed,
+                              lambda crowd, seg, label=label: controls(crowd, seg, label, True), adaptor))
+        X, y, G = torch.cat(Xs), torch.cat(ys), torch.cat(Gs)
+        tpe, tde = trajectory_errors(G, goal.repeat(len(classes), 1))
+        J = joints_of(X)
+        rows.append({"method": name, "CCA": top_k(encoders, X, y, 1), "R@3": top_k(encoders, X, y, 3),
+                     "FSD_cm": fsd(J), "ASR": M.asr(J), "TPE_m": tpe, "TDE_rad": tde,
+                     "CCA_steered": top_k(encoders, G, y, 1)})
+    return rows
+
+
+def strides(J: torch.Tensor, height: float = 0.05, speed: float = 0.3) -> list[float]:
+    """Stride lengths (m) of world joints J (T, 22, 3): the ground distance between successive
+    plants of the same foot joint (a plant: a run of frames with the joint low and slow)."""
+    out = []
+    for j in M.FEET:
+        p = J[:, j]
+        v = torch.cat((torch.zeros(1), (p[1:] - p[:-1])[:, [0, 2]].norm(dim=-1) * FPS))
+        planted = ((p[:, 1] < height) & (v < speed)).tolist()
+        plants, start = [], None
+        for t, on in enumerate(planted + [False]):
+            if on and start is None:
+                start = t
+            elif not on and start is not None:
+                plants.append(p[start:t, [0, 2]].mean(0))
+                start = None
+        out += [float((b - a).norm()) for a, b in zip(plants, plants[1:])]
+    return out
+
+
+def stride_by_leg(motor, description: str | None, legs: list[float], n: int = 8, seconds: float = 4.0, speed: float = 1.2,
+                  seed: int = 0, cfg: RuntimeConfig | None = None) -> list[dict]:
+    """The same description and goal (forward at `speed`) on bodies whose leg_length parameter is
+    each of `legs` (others average; description None: no persona, for a plain model): stride length (m, mean over plants after the first second),
+    leg length (m, hip to ankle at rest) and foot sliding, per body."""
+    from ..body.skeleton import JOINT_INDEX, SHAPE_NAMES, rest_offsets, rest_positions
+    from ..runtime.crowd import standing_state
+    cfg = cfg or RuntimeConfig()
+    rows = []
+    for leg in legs:
+        shape = torch.zeros(len(SHAPE_NAMES))
+        shape[SHAPE_NAMES.index("leg_length")] = leg
+        shapes = shape.expand(n, -1).clone()
+        init = torch.stack([standing_state(shape) for _ in range(n)])
+
+        def controls(crowd, seg):
+            if seg == 0:
+                for i in crowd.avatars:
+                    if description is not None:
+                        crowd.set_persona(i, description)
+                    crowd.set_goal(i, (0.0, speed))
+        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls)
+        J = joints_of(X)[:, int(FPS):]
+        s = [v for k in range(n) for v in strides(J[k])]
+        P = rest_positions(rest_offsets(shape[None], torch.float64))[0]
+        leg_m = float((P[JOINT_INDEX["left_hip"]] - P[JOINT_INDEX["left_ankle"]]).norm())
+        rows.append({"leg_length": leg, "leg_m": leg_m, "stride_m": sum(s) / max(len(s), 1), "strides": len(s),
+                     "FSD_cm": fsd(J)})
+    return rows

@@ -1,0 +1,269 @@
+import math
+
+import pytest
+import torch
+
+from avatar_motor.body import rotations as rot
+from avatar_motor.body.motion_state import SLICES, STATE_DIM
+from avatar_motor.body.skeleton import SHAPE_DIM
+from avatar_motor.model.denoiser import Denoiser, DenoiserConfig
+from avatar_motor.model.persona import TEXT_DIM, PersonaCond, trajectory_of
+
+from .test_model import TINY, _cfg, fixture_cache  # noqa: F401  (the fixture is used by name)
+
+PTINY = DenoiserConfig(**{**TINY.to_dict(), "persona": True})
+
+
+def _inputs(B=4, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randint(50, (B,), generator=g), torch.randn(B, 15, STATE_DIM, generator=g),
+            torch.randn(B, STATE_DIM, generator=g), g)
+
+
+def _cond(B, g, present=True):
+    c = PersonaCond(torch.randn(B, TEXT_DIM, generator=g), torch.randn(B, SHAPE_DIM, generator=g),
+                    torch.randn(B, 15, 4, generator=g), torch.ones(B, 3, dtype=torch.bool))
+    if not present:
+        c.present[:] = False
+    return c
+
+
+def test_a_persona_network_without_conditions_is_its_base_exactly():
+    torch.manual_seed(0)
+    base = Denoiser(TINY).eval()
+    net = Denoiser(PTINY).eval()
+    missing, unexpected = net.load_state_dict(base.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("persona.") for k in missing)
+    t, x, x0, g = _inputs()
+    ref = base(t, x, x0)
+    assert torch.equal(net(t, x, x0), ref)
+    # every condition absent: masked out of attention, the same function up to float noise
+    assert torch.allclose(net(t, x, x0, persona=_cond(4, g, present=False)), ref, atol=1e-5)
+    # a present condition changes the output; an absent one's values do not matter
+    c = _cond(4, g)
+    assert not torch.allclose(net(t, x, x0, persona=c), ref, atol=1e-3)
+    no_text = c.without("text")
+    other = PersonaCond(torch.randn(4, TEXT_DIM), c.shape, c.trajectory, no_text.present)
+    assert torch.allclose(net(t, x, x0, persona=no_text), net(t, x, x0, persona=other), atol=1e-5)
+    # rows are independent: a row's output does not depend on another row's conditions
+    mixed = PersonaCond.cat([c.select(slice(0, 2)), no_text.select(slice(2, 4))])
+    assert torch.allclose(net(t, x, x0, persona=mixed)[:2], net(t, x, x0, persona=c)[:2], atol=1e-5)
+
+
+def test_persona_config_is_checked():
+    with pytest.raises(ValueError, match="incontext"):
+        DenoiserConfig.from_dict({"arch": "adaln", "persona": True})
+    with pytest.raises(ValueError, match="blend"):
+        DenoiserConfig.from_dict({"blend": 16})
+    with pytest.raises(ValueError, match="persona"):
+        DenoiserConfig.from_dict({"persona": 1})
+
+
+def test_in_diffusion_blending_pulls_the_first_frames_to_the_initial_state():
+    net = Denoiser(DenoiserConfig(**{**TINY.to_dict(), "blend": 5}))
+    _, x, x0, _ = _inputs()
+    b = net.blended(x, x0)
+    assert torch.allclose(b[:, 0], x0, atol=1e-6)  # weight 1 on the first frame
+    assert torch.allclose(b[:, 2], 0.6 * x0 + 0.4 * x[:, 2], atol=1e-6)  # linear from 1 to 0 over 5 frames
+    assert torch.equal(b[:, 5:], x[:, 5:])
+
+
+def test_trajectory_is_the_roots_ground_path_and_facing():
+    x = torch.zeros(1, 3, STATE_DIM)
+    yaw = torch.tensor([0.0, math.pi / 2, -math.pi / 4])
+    R = rot.axis_angle_to_matrix(torch.stack((torch.zeros(3), yaw, torch.zeros(3)), -1))
+    x[0, :, SLICES["root_rot"]] = rot.matrix_to_6d(R)
+    x[0, :, SLICES["root_pos"]] = torch.tensor([[0.0, 0.9, 0.0], [0.1, 0.95, 0.5], [-0.2, 0.9, 1.0]])
+    tr = trajectory_of(x)[0]
+    assert torch.allclose(tr[:, :2], torch.tensor([[0.0, 0.0], [0.1, 0.5], [-0.2, 1.0]]))
+    assert torch.allclose(tr[:, 2], torch.sin(yaw), atol=1e-6) and torch.allclose(tr[:, 3], torch.cos(yaw), atol=1e-6)
+
+
+def test_text_embeddings_place_paraphrases_together_and_refuse_bad_text():
+    from avatar_motor.model.text import embed_texts
+    e = embed_texts(["a weary old man", "an elderly man, slow and a little frail", "an energetic teenager"])
+    assert e.shape == (3, TEXT_DIM) and torch.allclose(e.norm(dim=1), torch.ones(3), atol=1e-5)
+    assert float(e[0] @ e[1]) > float(e[0] @ e[2]) + 0.2
+    for bad in ("", "   ", "x" * 501, None):
+        with pytest.raises(ValueError, match="persona description"):
+            embed_texts([bad])
+
+
+def test_every_style_has_training_and_held_out_descriptions():
+    from avatar_motor.data.personas import DESCRIPTIONS, TRAIN, descriptions
+    bandai = {"active", "elderly", "exhausted", "feminine", "masculine", "normal", "youthful", "happy", "sad", "angry",
+              "proud", "not-confident", "masculinity", "childish", "old", "tired", "musical", "giant", "chimpira"}
+    assert bandai <= set(DESCRIPTIONS)
+    every = [s for lab in DESCRIPTIONS for s in descriptions(lab, "all")]
+    assert len(every) == len(set(every))  # no sentence stands for two labels
+    for lab in DESCRIPTIONS:
+        assert len(descriptions(lab)) == TRAIN and len(descriptions(lab, "heldout")) >= 2
+
+
+def test_a_persona_run_starts_from_a_plain_base_and_trains_its_tokens(tmp_path, fixture_cache):  # noqa: F811
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from avatar_motor.train.trainer import PersonaTexts, Trainer
+    Trainer(_cfg(tmp_path / "base", fixture_cache, steps=2), progress=False).run()
+    base = load_checkpoint(tmp_path / "base" / "checkpoint").net.eval()
+    tr = Trainer(_cfg(tmp_path / "p", fixture_cache, steps=3, init=str(tmp_path / "base" / "checkpoint"),
+                      model=PTINY, persona_dropout=0.0), progress=False)
+    t, x, x0, _ = _inputs()
+    tr.net.eval()
+    assert torch.equal(tr.net(t, x, x0), base(t, x, x0))  # the start is the base
+    # the fixtures carry no style: give the clips Bandai labels so that the text is drawn
+    tr.ds.clip_labels = [{"style": "elderly" if i % 2 else "youthful"} for i in range(len(tr.ds.clip_labels))]
+    tr.texts = PersonaTexts(tr.ds)
+    xs, shapes, clip = tr.ds.sample_indexed(8, torch.Generator().manual_seed(1))
+    c = tr.persona_batch(xs, shapes, clip)
+    assert bool(c.present.all()) and torch.equal(c.shape, shapes)
+    assert torch.allclose(c.trajectory, trajectory_of(xs[:, 1:]))
+    before = {k: v.clone() for k, v in tr.net.persona.state_dict().items()}
+    tr.run()
+    after = tr.net.persona.state_dict()
+    assert all(not torch.equal(before[k], after[k]) for k in before)  # every condition's embedder learned
+    ck = load_checkpoint(tmp_path / "p" / "checkpoint")
+    assert ck.net.cfg.persona
+    with pytest.raises(ValueError, match="same architecture"):  # a persona network is no init for a plain one
+        Trainer(_cfg(tmp_path / "q", fixture_cache, init=str(tmp_path / "p" / "checkpoint")), progress=False)
+
+
+def _persona_motor(tmp_path, seed=0):
+    from avatar_motor.data.dataset import Normalizer
+    from avatar_motor.model.checkpoint import load_checkpoint, save_checkpoint
+    torch.manual_seed(seed)
+    net = Denoiser(PTINY)
+    for p in net.persona.parameters():  # a random but not negligible effect of the conditions
+        p.data.mul_(20.0)
+    save_checkpoint(tmp_path / "ptiny", net, Normalizer(torch.zeros(STATE_DIM), torch.full((STATE_DIM,), 0.05)),
+                    {"name": "ptiny", "licence": "test only"})
+    return load_checkpoint(tmp_path / "ptiny")
+
+
+def test_goal_trajectory_starts_from_the_body_and_approaches_the_goal():
+    from avatar_motor.body.motion_state import FPS
+    from avatar_motor.runtime.crowd import standing_state
+    from avatar_motor.runtime.guidance import goal_trajectory
+    x0 = standing_state()[None].double()  # canonical already: at the origin, facing +Z, at rest
+    v = torch.tensor([[0.0, 0.0, 1.2]], dtype=torch.float64)
+    tr = goal_trajectory(x0, v, None, 90)[0]
+    step = (tr[1:, :2] - tr[:-1, :2]).norm(dim=-1) * FPS
+    assert float(step[0]) < 0.4 and abs(float(step[-1]) - 1.2) < 0.01  # speeds up from rest to the goal
+    assert torch.all(step[1:] >= step[:-1] - 1e-9) and torch.allclose(tr[:, 0], torch.zeros(90, dtype=torch.float64))
+    assert torch.allclose(tr[:, 3], torch.ones(90, dtype=torch.float64))  # no facing goal: keeps facing +Z
+    # a facing goal to the body's left (+X) turns it the short way, by about half in one halflife
+    tr = goal_trajectory(x0, v * 0, torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64), 90, halflife=0.5)[0]
+    yaw = torch.atan2(tr[:, 2], tr[:, 3])
+    assert abs(float(yaw[14]) - math.pi / 4) < 0.02 and abs(float(yaw[-1]) - math.pi / 2) < 0.1
+    assert torch.allclose(tr[:, :2], torch.zeros(90, 2, dtype=torch.float64))  # no velocity: stays
+
+
+def test_avatars_with_personas_move_differently_and_the_rest_as_without(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    motor = _persona_motor(tmp_path)
+    cfg = RuntimeConfig(steps=2)
+
+    def run(personas, goal=None):
+        crowd = Crowd(motor, cfg, seed=3)
+        ids = [crowd.spawn(position=(2.0 * k, 0.0)) for k in range(len(personas))]
+        for i, p in zip(ids, personas):
+            crowd.set_persona(i, p)
+            if goal is not None:
+                crowd.set_goal(i, goal)
+        seg = crowd.step_segment()
+        return torch.stack([seg[i] for i in ids])
+
+    plain = run([None, None])
+    mixed = run([None, "a weary old man"])
+    assert torch.allclose(mixed[0], plain[0], atol=1e-5)  # another avatar's persona changes nothing
+    assert not torch.allclose(mixed[1], plain[1], atol=1e-3)
+    other = run([None, "an energetic teenager"])
+    assert not torch.allclose(other[1], mixed[1], atol=1e-3)  # the words matter
+    steered = run([None, "a weary old man"], goal=(0.0, 1.2))
+    assert not torch.allclose(steered[1], mixed[1], atol=1e-3)  # and the trajectory
+    crowd = Crowd(motor, cfg)
+    i = crowd.spawn()
+    with pytest.raises(ValueError, match="persona description"):
+        crowd.set_persona(i, "")
+
+
+def test_a_plain_model_refuses_a_persona_by_name(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd
+    from .conftest_models import tiny_motor
+    crowd = Crowd(tiny_motor(tmp_path))
+    with pytest.raises(ValueError, match="no persona tokens"):
+        crowd.set_persona(crowd.spawn(), "a weary old man")
+
+
+def test_trajectory_errors_and_foot_sliding_on_made_up_motion():
+    from avatar_motor.body.motion_state import SLICES as S
+    from avatar_motor.eval.persona import fsd, trajectory_errors
+    from avatar_motor.runtime.crowd import standing_state
+    from avatar_motor.runtime.guidance import goal_trajectory
+    x0 = standing_state().double()
+    goal = torch.tensor([[0.0, 0.0, 1.0]])
+    path = goal_trajectory(x0[None], goal.double(), goal.double(), 60)[0]  # canonical = world here
+    X = x0.repeat(61, 1)
+    for f in range(1, 61):  # the body carried rigidly along the commanded path
+        d = torch.tensor([path[f - 1, 0], 0.0, path[f - 1, 1]], dtype=torch.float64)
+        X[f, S["joints"]] = (x0[S["joints"]].view(22, 3) + d).flatten()
+        X[f, S["root_pos"]] = x0[S["root_pos"]] + d
+    tpe, tde = trajectory_errors(X[None], goal)
+    assert tpe < 1e-6 and tde < 1e-3
+    side = X.clone()
+    side[1:, S["joints"]] += torch.tensor([0.1, 0.0, 0.0], dtype=torch.float64).repeat(22)
+    assert abs(trajectory_errors(side[None], goal)[0] - 0.1) < 1e-6
+    J = X[:, S["joints"]].view(1, 61, 22, 3).float()
+    assert fsd(J) > 1.0  # feet carried along the ground slide (cm per frame)
+    assert fsd(J[:, :1].repeat(1, 30, 1, 1)) == 0.0  # planted feet do not
+
+
+def test_the_persona_command_is_validated_and_carried_out(tmp_path):
+    from avatar_motor.runtime.crowd import RuntimeConfig
+    from avatar_motor.serve.protocol import ProtocolError, parse_message
+    from avatar_motor.serve.world import CommandError, World
+    from .conftest_models import tiny_motor
+    cmd = parse_message('{"type": "persona", "avatar": 0, "description": "a weary old man"}')
+    assert cmd == {"type": "persona", "avatar": 0, "description": "a weary old man"}
+    assert parse_message('{"type": "persona", "avatar": 0, "description": null}')["description"] is None
+    for bad in ('"   "', '"' + "x" * 301 + '"', "7", "[]"):
+        with pytest.raises(ProtocolError, match="description"):
+            parse_message('{"type": "persona", "avatar": 0, "description": %s}' % bad)
+    world = World(_persona_motor(tmp_path), RuntimeConfig(steps=2))
+    world.apply({"type": "spawn"})
+    world.apply(cmd)
+    assert world.crowd.avatars[0].persona == "a weary old man"
+    world.apply({"type": "persona", "avatar": 0, "description": None})
+    assert world.crowd.avatars[0].persona is None
+    plain = World(tiny_motor(tmp_path))
+    plain.apply({"type": "spawn"})
+    with pytest.raises(CommandError, match="no persona tokens"):
+        plain.apply(cmd)
+
+
+def test_strides_are_the_distances_between_plants_of_one_foot():
+    from avatar_motor.body.skeleton import JOINT_INDEX
+    from avatar_motor.eval.persona import strides
+    T = 90
+    J = torch.zeros(T, 22, 3)
+    J[..., 1] = 0.5  # every joint in the air...
+    for j, phase in ((JOINT_INDEX["left_foot"], 0), (JOINT_INDEX["right_foot"], 15)):
+        for t in range(T):
+            k, r = divmod(t + phase, 30)  # ...but the feet: planted 15 frames, 15 swinging, 1.4 m a stride
+            J[t, j] = torch.tensor([0.0, 0.02, 1.4 * k]) if r < 15 else torch.tensor([0.0, 0.3, 1.4 * k + 1.4 * (r - 14) / 16])
+    s = strides(J)
+    assert len(s) >= 4 and all(abs(v - 1.4) < 1e-5 for v in s), s
+
+
+def test_text_guidance_strengthens_the_text_and_leaves_the_rest(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    motor = _persona_motor(tmp_path)
+
+    def run(scale):
+        crowd = Crowd(motor, RuntimeConfig(steps=2, persona_scale=scale), seed=3)
+        ids = [crowd.spawn(position=(2.0 * k, 0.0)) for k in range(2)]
+        crowd.set_persona(ids[1], "a weary old man")
+        seg = crowd.step_segment()
+        return [seg[i] for i in ids]
+    one, two = run(1.0), run(2.5)
+    assert torch.allclose(one[0], two[0], atol=1e-4, rtol=1e-4)  # no text: nothing to guide (float noise)
+    assert float((one[1] - two[1]).abs().max()) > 0.01
