@@ -44,7 +44,7 @@ clean:
 
 # The shipped model family, rebuilt in dependency order: the motion data, the base (three stages),
 # its one-step EMDM sampler, then the adaptors (actions, styles, reaching) and the persona model
-# (the base fine-tuned with text, shape and trajectory tokens), each shipped into
+# (the base fine-tuned with text, shape and trajectory conditions), each shipped into
 # models/ as float16 with the fingerprint of the base it was trained on. About 9 h on 2 CPU
 # cores (base 3.5 h + DeepMimic stages 1.3 h, EMDM 1.1 h, adaptors 3 x 0.5 h, persona 1.5 h, evaluations); needs ../shared. Starts
 # afresh (the runs below are deleted) unless RESUME=1, which continues each interrupted job. A

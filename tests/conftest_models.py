@@ -28,7 +28,7 @@ SHIPPED_PERSONA = SHIPPED.parent / "primal-bandai-persona"
 
 
 def persona_or_tiny(tmp_path: Path):
-    """The shipped persona model, else a tiny random one with persona tokens (mechanics only)."""
+    """The shipped persona model, else a tiny random one with persona conditions (mechanics only)."""
     if (SHIPPED_PERSONA / "model.safetensors").exists():
         return load_checkpoint(SHIPPED_PERSONA)
     torch.manual_seed(0)

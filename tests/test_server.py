@@ -467,7 +467,7 @@ def _fuzz_variants(kind: str, rng: random.Random) -> list[dict]:
     required, optional = P._FIELDS[kind]
     good = {"avatar": 0, "preset": "left_kick", "joint": "head", "velocity": [0.0, 0.0, 1.0], "label": "wave",
             "seed": 1, "on": True, "force": [0.0, 0.0, 100.0], "seconds": 0.5, "target": [0.0, 1.0, 1.0],
-            "position": [0.0, 1.0, 3.0]}
+            "position": [0.0, 1.0, 3.0], "description": "a weary old man"}
     base = {"type": kind, **{k: good[k] for k in required}}
     bad_values = [None, True, "x" * 300, -1, 1e309, [1e6, 1e6, 1e6], {"a": 1}, [None], ["spawn"], 2**40]
     out = [{**{k: v for k, v in base.items() if k != field}} for field in required]

@@ -308,7 +308,7 @@ def test_a_crowd_of_personas_in_the_studio(tmp_path, artifacts):
     from .conftest_models import persona_or_tiny
     world = World(persona_or_tiny(tmp_path), RuntimeConfig(), seed=0)
     with studio_page(world, "window.studio && window.studio.frame > 5") as page:
-        assert page.eval_on_selector("#persona-panel", "p => p.style.display") == ""  # the model has persona tokens
+        assert page.eval_on_selector("#persona-panel", "p => p.style.display") == ""  # the model takes personas
         page.fill("#persona-text", "a cheerful baker")
         press(page, "#persona-set")
         deadline = time.time() + 15

@@ -140,6 +140,11 @@ class Scene:
         """An action or style label of the shipped adaptors (Model.labels); None releases it."""
         self.crowd.set_label(avatar, label, scale)
 
+    def persona(self, avatar: int, description: str | None) -> None:
+        """Who the avatar is, in words ("a weary old man"), or a characterized name (`adapt
+        persona`), with a persona model (am.load("models/primal-bandai-persona")); None releases it."""
+        self.crowd.set_persona(avatar, description)
+
     def target(self, avatar: int, position, scale: float = 1.0) -> None:
         """Walk to the ground point (x, z) with the reaching adaptor; None releases it."""
         self.crowd.set_target(avatar, position, scale)

@@ -561,6 +561,18 @@ def _adapt(a) -> int:
     from . import config
     from .train.adapt import AdaptConfig, adapt
 
+    if a.what == "persona":
+        from .train.characterize import CharacterizeConfig, characterize
+        cfg = config.load(CharacterizeConfig, a.config, a.set)
+        cfg.clips = a.clips or cfg.clips
+        for k in ("name", "model", "out"):
+            if getattr(a, k):
+                setattr(cfg, k, getattr(a, k))
+        path = characterize(cfg)
+        print(f"characterized model written to {path}: serve --model {path}, then give an avatar the persona {cfg.name!r}")
+        return 0
+    if a.clips or a.name:
+        raise ValueError("clip files and --name are for 'adapt persona CLIP.bvh --name NAME'")
     path = adapt(config.load(AdaptConfig, a.config, a.set))
     print(f"adaptor written to {path}")
     return 0
@@ -641,6 +653,7 @@ def _style_evaluators(caches, classes: list[str], seconds: float, steps: int, se
 
 def _eval_persona(a) -> int:
     import json
+    import torch
     from .eval.adaptation import format_rows
     from .eval.control import initial_states
     from .eval.persona import eval_persona, methods_for
@@ -649,7 +662,7 @@ def _eval_persona(a) -> int:
 
     motor = load_checkpoint(a.model)
     if not motor.net.cfg.persona:
-        raise ValueError(f"--model {a.model} has no persona tokens; give the persona model (configs/persona.json)")
+        raise ValueError(f"--model {a.model} has no persona conditions; give the persona model (configs/persona.json)")
     base = load_checkpoint(a.base) if a.base else None
     styles = load_adaptor(a.styles, base.net) if a.styles and base is not None else None
     caches = _caches(a.data or ["dataset-2"])
@@ -670,6 +683,22 @@ def _eval_persona(a) -> int:
                           f"steered forward at {a.speed:g} m/s for TPE/TDE",
                           rows, ["CCA", "R@3", "CCA_steered", "FSD_cm", "ASR", "TPE_m", "TDE_rad"]), flush=True)
         out.update(real_CCA=real, rows=rows)
+    if a.identify:
+        from .eval.persona import recognised
+        name, _, style = a.identify.partition("=")
+        if style not in classes:
+            raise ValueError(f"--identify {a.identify}: STYLE must be one of {classes}")
+        if name not in motor.config.get("personas", {}):
+            raise ValueError(f"--identify {a.identify}: {a.model} was not characterized as {name!r} (adapt persona)")
+        encs, real, _ = _style_evaluators(caches, classes, a.seconds, a.encoder_steps, [a.seed + k for k in range(a.evaluators)])
+        init, shapes, what = initial_states(caches, a.n, a.seed)
+        shapes = torch.tensor(motor.config["characterized"]["shape"]).expand(len(init), -1).clone()
+        r = recognised(motor, name, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed)
+        base_r = recognised(motor, None, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed)
+        print(f"{name}: read as {style} in {100 * r['unsteered']:.0f} % of {a.n} rollouts ({what}, {a.seconds:g} s, on the "
+              f"clip's body), {100 * r['steered']:.0f} % steered at {a.speed:g} m/s; without the persona "
+              f"{100 * base_r['unsteered']:.0f} % / {100 * base_r['steered']:.0f} % (the evaluator reads real clips at {real:.3f})")
+        out["identify"] = {"name": name, "style": style, **r, "without": base_r}
     if a.shape_png:
         from .eval.persona import stride_by_leg
         from .viz import stride_plot
@@ -784,6 +813,13 @@ def build_parser() -> argparse.ArgumentParser:
         j.add_argument("--config", help=f"JSON config ({example}); fields it leaves out keep their defaults")
         j.add_argument("--set", action="append", metavar="NAME=VALUE",
                        help="override one config field (repeatable; dotted for nested fields, e.g. segment.mirror=false)")
+        if name == "adapt":
+            j.add_argument("what", nargs="?", choices=["persona"], help="persona: few-shot characterization of a "
+                           "persona model from the character's own clip(s) (MotionPersona §6)")
+            j.add_argument("clips", nargs="*", help="with persona: the character's BVH file(s), about 10 s in all")
+            j.add_argument("--name", help="with persona: the identifier to give avatars (letters, digits, _ and -)")
+            j.add_argument("--model", help="with persona: the persona model (default models/primal-bandai-persona)")
+            j.add_argument("--out", help="with persona: the checkpoint folder (default runs/personas/NAME)")
         j.set_defaults(func={"train": _train, "distill": _distill, "adapt": _adapt, "limits": _limits}[name])
 
     d = sub.add_parser("data", help="import and inspect motion").add_subparsers(dest="dcmd", required=True)
@@ -929,7 +965,9 @@ def build_parser() -> argparse.ArgumentParser:
     eq.add_argument("--json", help="write the rows as JSON")
     eq.add_argument("--shape-png", help="also: stride length against leg length, the same description and goal on "
                     "five leg lengths (the persona model and the base), plotted to this file")
-    eq.add_argument("--skip-table", action="store_true", help="with --shape-png: only the stride measurement")
+    eq.add_argument("--skip-table", action="store_true", help="only the --shape-png or --identify measurement")
+    eq.add_argument("--identify", metavar="NAME=STYLE", help="a characterized model (adapt persona): the share of "
+                    "rollouts given the persona NAME that the evaluator reads as STYLE")
     eq.set_defaults(func=_eval_persona)
     ep = ev.add_parser("physics", help="physics mode (DROP): push and ball series, ghost forces, energies, ablations")
     ep.add_argument("--model", default=str(DEFAULT_MODEL))

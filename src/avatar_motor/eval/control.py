@@ -178,6 +178,11 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
     if goal:
         for i in ids:
             crowd.set_goal(i, (1.0, 0.5))
+    if motor.net.cfg.persona:  # a persona model is timed with a different character for each avatar
+        from ..data.personas import DESCRIPTIONS
+        texts = [d for lab in sorted(DESCRIPTIONS) for d in DESCRIPTIONS[lab]]
+        for k, i in enumerate(ids):
+            crowd.set_persona(i, texts[k * 7 % len(texts)])
     crowd.step_segment()  # warm-up
     acc: dict[str, float] = {}
     for _ in range(segments):

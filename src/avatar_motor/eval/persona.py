@@ -163,3 +163,23 @@ def stride_by_leg(motor, description: str | None, legs: list[float], n: int = 8,
         rows.append({"leg_length": leg, "leg_m": leg_m, "stride_m": sum(s) / max(len(s), 1), "strides": len(s),
                      "FSD_cm": fsd(J)})
     return rows
+
+
+def recognised(motor, persona: str | None, label: int, encoders: list, init: torch.Tensor, shapes: torch.Tensor,
+               seconds: float = 3.0, seed: int = 0, cfg: RuntimeConfig | None = None, speed: float = 1.0) -> dict:
+    """The share of rollouts the evaluators read as class `label`: avatars given `persona` (a
+    description or a characterized name; None: none), unsteered and steered forward at `speed`."""
+    cfg = cfg or RuntimeConfig()
+    goal = (canonical_transform(init.double()).R.float() @ torch.tensor([0.0, 0.0, 1.0])) * speed
+    out = {}
+    for steer in (False, True):
+        def controls(crowd, seg, steer=steer):
+            if seg == 0:
+                for k, i in enumerate(sorted(crowd.avatars)):
+                    if persona is not None:
+                        crowd.set_persona(i, persona)
+                    if steer:
+                        crowd.set_goal(i, (float(goal[k, 0]), float(goal[k, 2])))
+        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls)
+        out["steered" if steer else "unsteered"] = top_k(encoders, X, torch.full((len(X),), label), 1)
+    return out

@@ -137,11 +137,11 @@ class AdaptedDenoiser(nn.Module):
         if self.cfg.kind == "finetune":
             # scale: a number or one per row (B, 1, 1) as the runtime passes it
             cond = cond + (scale.reshape(-1, 1) if torch.is_tensor(scale) else scale) * e
-            h, _ = base.tokens(base.blended(x_t, x0), cond)
+            h = base.tokens(base.blended(x_t, x0), cond)
             for blk in base.blocks:
                 h = blk(h, cond)
             return base.head(h)
-        h, _ = base.tokens(base.blended(x_t, x0), cond)
+        h = base.tokens(base.blended(x_t, x0), cond)
         c = h
         for i, blk in enumerate(base.blocks):
             if self.cfg.kind == "controlnet":

@@ -28,7 +28,7 @@ class DenoiserConfig:
     ff: int = 1024
     dropout: float = 0.1
     latent: int = 0  # size of EMDM's latent z (0: a plain denoiser); z enters the condition token
-    persona: bool = False  # text, shape and trajectory condition tokens (model/persona.py); incontext only
+    persona: bool = False  # text, shape and trajectory conditions (model/persona.py)
     # in-diffusion blending (MotionPersona Eq. 4): the first `blend` noisy frames the network sees are
     # pulled towards the initial state, linearly from full to none (0: off)
     blend: int = 0
@@ -59,8 +59,6 @@ class DenoiserConfig:
             raise ValueError(f"denoiser field 'dropout' must be a number in [0, 1), got {cfg.dropout!r}")
         if not isinstance(cfg.persona, bool):
             raise ValueError(f"denoiser field 'persona' must be true or false, got {cfg.persona!r}")
-        if cfg.persona and cfg.arch != "incontext":
-            raise ValueError("persona tokens need the 'incontext' denoiser arch")
         if cfg.blend > cfg.frames:
             raise ValueError(f"denoiser 'blend' {cfg.blend} is more than its {cfg.frames} frames")
         if cfg.width % cfg.heads:
@@ -86,12 +84,10 @@ class Attention(nn.Module):
         self.out = nn.Linear(width, width)
         self.dropout = dropout
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """mask (B, N) bool: the tokens that may be attended to (None: all)."""
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
         B, N, C = x.shape
         q, k, v = self.qkv(x).view(B, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
-        m = None if mask is None else mask[:, None, None, :]
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=m, dropout_p=self.dropout if self.training else 0.0)
+        y = F.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
         return self.out(y.transpose(1, 2).reshape(B, N, C))
 
 
@@ -117,9 +113,9 @@ class Block(nn.Module):
             nn.init.zeros_(self.modulation[1].weight)
             nn.init.zeros_(self.modulation[1].bias)
 
-    def forward(self, x: torch.Tensor, cond: torch.Tensor | None = None, mask: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, cond: torch.Tensor | None = None) -> torch.Tensor:
         if not self.adaln:
-            x = x + self.drop(self.attn(self.norm1(x), mask))
+            x = x + self.drop(self.attn(self.norm1(x)))
             return x + self.drop(self.ff(self.norm2(x)))
         sh1, sc1, g1, sh2, sc2, g2 = self.modulation(cond)[:, None].chunk(6, -1)
         x = x + g1 * self.drop(self.attn(self.norm1(x) * (1 + sc1) + sh1))
@@ -150,8 +146,8 @@ class Denoiser(nn.Module):
             nn.init.zeros_(self.z_mlp[-1].weight)
             nn.init.zeros_(self.z_mlp[-1].bias)
         if cfg.persona:
-            from .persona import PersonaTokens
-            self.persona = PersonaTokens(w, cfg.frames)
+            from .persona import PersonaEmbedding
+            self.persona = PersonaEmbedding(w)
 
     def condition(self, t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         """Summed time + initial-state (+ latent) embedding (B, width). A latent network given no z
@@ -171,22 +167,18 @@ class Denoiser(nn.Module):
         w[:M] = torch.linspace(1.0, 0.0, M + 1, dtype=x_t.dtype)[:M]
         return x_t + w[:, None] * (x0[:, None] - x_t)
 
-    def tokens(self, x_t: torch.Tensor, cond: torch.Tensor, persona=None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The token sequence and its key mask (None: every token may be attended to)."""
+    def tokens(self, x_t: torch.Tensor, cond: torch.Tensor, frames: torch.Tensor | None = None) -> torch.Tensor:
+        """The token sequence; `frames` (B, frames, width) is added to the frame tokens."""
         h = self.in_proj(x_t)
+        if frames is not None:
+            h = h + frames
         if self.cfg.arch == "incontext":
             h = torch.cat((cond[:, None], h), 1)
-        h = h + self.pos
-        if persona is None or not self.cfg.persona or not bool(persona.present.any()):
-            return h, None
-        tok, present = self.persona(persona, h.dtype)
-        h = torch.cat((h[:, :1], tok, h[:, 1:]), 1)
-        mask = torch.cat((present.new_ones(len(h), 1), present, present.new_ones(len(h), x_t.shape[1])), 1)
-        return h, mask
+        return h + self.pos
 
     def head(self, h: torch.Tensor) -> torch.Tensor:
         if self.cfg.arch == "incontext":
-            h = h[:, -self.cfg.frames:]
+            h = h[:, 1:]
         return self.out(self.norm_out(h))
 
     def forward(self, t: torch.Tensor, x_t: torch.Tensor, x0: torch.Tensor, z: torch.Tensor | None = None,
@@ -195,7 +187,11 @@ class Denoiser(nn.Module):
         state, z (B, latent) EMDM's latent (latent networks only), persona a PersonaCond (persona
         networks; None: no condition)."""
         cond = self.condition(t, x0, z)
-        h, mask = self.tokens(self.blended(x_t, x0), cond, persona)
+        frames = None
+        if persona is not None and self.cfg.persona:
+            c, frames = self.persona(persona, cond.dtype)
+            cond = cond + c
+        h = self.tokens(self.blended(x_t, x0), cond, frames)
         for blk in self.blocks:
-            h = blk(h, cond, mask)
+            h = blk(h, cond)
         return self.head(h)

@@ -386,17 +386,22 @@ class Crowd:
         self._changed(a)
 
     def set_persona(self, i: int, description: str | None) -> None:
-        """Who avatar i is, in words ("a weary old man"), for a persona model; None releases it (the
-        model then moves it with no text, as its base would). The body shape is the avatar's own."""
+        """Who avatar i is, in words ("a weary old man"), or the name of a character the model was
+        characterized with (`adapt persona`), for a persona model; None releases it (the model then
+        moves it with no text, as its base would). The body shape is the avatar's own."""
         a = self._get(i)
         if description is None:
             a.persona, a.persona_text = None, None
         else:
             if not self.motor.net.cfg.persona:
-                raise ValueError(f"model {self.motor.name!r} has no persona tokens; serve a persona model "
+                raise ValueError(f"model {self.motor.name!r} has no persona conditions; serve a persona model "
                                  "(models/primal-bandai-persona, built with configs/persona.json)")
             from ..model.text import embed_texts
-            a.persona_text = embed_texts([description])[0]
+            known = self.motor.config.get("personas", {})  # characterized ones (adapt persona): by name
+            if description.strip() in known:
+                a.persona_text = torch.tensor(known[description.strip()], dtype=torch.float32)
+            else:
+                a.persona_text = embed_texts([description])[0]
             a.persona = description.strip()
         self._changed(a)
 

@@ -64,7 +64,7 @@ class Sampler:
         if cfg.backend not in BACKENDS:
             raise ValueError(f"runtime backend must be one of {BACKENDS}, got {cfg.backend!r}")
         # the base network as ONNX Runtime runs it (an adaptor's avatars use torch; so does a persona
-        # network, whose condition tokens the exported graph does not take)
+        # network, whose persona conditions the exported graph does not take)
         self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona else motor.net
 
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:

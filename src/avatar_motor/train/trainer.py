@@ -184,8 +184,8 @@ class Trainer:
         normalisation is recomputed (unless init_stats), so a model can follow re-imported data
         without starting over."""
         motor = load_checkpoint(folder)
-        # a persona network may start from a base without persona tokens (or blending): the tokens
-        # start new, masked out when absent, so the start is the base computation
+        # a persona network may start from a base without persona conditions (or blending): their
+        # embedders start at zero, so the start is the base computation
         same = replace(self.cfg.model, persona=motor.net.cfg.persona, blend=motor.net.cfg.blend)
         if motor.net.cfg != same or (motor.net.cfg.persona and not self.cfg.model.persona):
             raise ValueError(f"init checkpoint {folder} has model {motor.net.cfg}, the config asks for {self.cfg.model}; "
