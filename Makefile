@@ -51,7 +51,7 @@ clean:
 # shipped folder keeps its card.md: bring its figures up to date from runs/evals/.
 SHARED ?= ../shared/data/bandai-namco
 PYBULLET ?= pybullet==3.2.7
-FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/persona
+FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/persona runs/persona-2
 AM := $(BIN)/avatar-motor
 
 data: install
@@ -77,7 +77,8 @@ models: data
 	$(AM) adapt --config configs/reach.json
 	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach
 	$(AM) train --config configs/persona.json
-	$(AM) ship runs/persona/checkpoint models/primal-bandai-persona
+	$(AM) train --config configs/persona-2.json
+	$(AM) ship runs/persona-2/checkpoint models/primal-bandai-persona
 	mkdir -p runs/evals
 	$(AM) eval realism --model models/primal-bandai > runs/evals/realism.txt && cat runs/evals/realism.txt
 	$(AM) eval impulses --model models/primal-bandai-emdm > runs/evals/impulses.txt && cat runs/evals/impulses.txt

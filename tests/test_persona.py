@@ -316,3 +316,24 @@ def test_the_python_api_gives_an_avatar_a_persona(tmp_path):
     assert scene.crowd.avatars[a].persona == "a weary old man" and len(scene.motion(a)) > 30
     scene.persona(a, None)
     assert scene.crowd.avatars[a].persona is None
+
+
+def test_persona_swap_gives_text_windows_a_feet_matched_state_of_another_style(tmp_path, fixture_cache):  # noqa: F811
+    from avatar_motor.train.trainer import PersonaTexts, Trainer
+    tr = Trainer(_cfg(tmp_path / "p", fixture_cache, steps=2, model=PTINY, persona_dropout=0.0, persona_swap=1.0,
+                      persona_neighbours=4), progress=False)
+    n = len(tr.ds.clip_labels)
+    tr.ds.clip_labels = [{"style": "elderly" if i % 2 else "youthful"} for i in range(n)]
+    tr.texts = PersonaTexts(tr.ds)
+    tr.pool_style = tr.texts.clip_style[tr.pool.clip]
+    x, shapes, clip = tr.ds.sample_indexed(8, torch.Generator().manual_seed(2))
+    c = tr.persona_batch(x, shapes, clip)
+    x0 = tr.swapped_initial(x, shapes, clip, c)
+    moved = (x0 - x[:, 0]).abs().amax(-1) > 1e-6
+    assert bool(moved.all())  # every window with a text continues from another style's state
+    c.present[:4, 0] = False
+    x0 = tr.swapped_initial(x, shapes, clip, c)
+    assert torch.equal(x0[:4], x[:4, 0])  # without a text the window keeps its own state
+    tr.run()  # and training runs with it
+    with pytest.raises(ValueError, match="persona_swap"):
+        Trainer(_cfg(tmp_path / "q", fixture_cache, model=PTINY, persona_swap=1.5), progress=False)

@@ -61,6 +61,12 @@ class TrainConfig:
     # persona networks (model.persona): the chance that each condition (text, shape, trajectory)
     # is left out of a training window, so that every one may be absent at run time
     persona_dropout: float = 0.25
+    # persona networks: the share of windows with a text whose initial state (what the network
+    # continues from) is swapped for that of a window of another style, one of the
+    # persona_neighbours whose ankles and feet are nearest (train/adapt.py's swap, for the same
+    # reason: the initial state already tells the style, so without it the text is redundant)
+    persona_swap: float = 0.0
+    persona_neighbours: int = 256
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     name: str = "avatar-motor-base"
@@ -161,6 +167,8 @@ class Trainer:
         self.ds = SegmentDataset(caches, cfg.segment)
         if cfg.model.persona:
             self.texts = PersonaTexts(self.ds)
+        if not 0.0 <= cfg.persona_swap <= 1.0:
+            raise ValueError(f"persona_swap is a share of the windows: give a value in [0, 1], not {cfg.persona_swap}")
         if cfg.init_stats and not cfg.init:
             raise ValueError("init_stats keeps the init checkpoint's normalisation; set init to that checkpoint")
         self.norm = load_checkpoint(cfg.init).norm if cfg.init_stats else load_or_compute_stats(self.ds, self.cache_paths)
@@ -168,6 +176,11 @@ class Trainer:
         self.net = Denoiser(cfg.model)
         if cfg.init and not (self.state_dir / "state.json").exists():  # a resumed run has its own weights
             self._warm_start(cfg.init)
+        self.pool = None
+        if cfg.model.persona and cfg.persona_swap > 0:
+            from .adapt import _NeighbourPool  # (adapt imports this module)
+            self.pool = _NeighbourPool(self.ds, self.norm, 30000, torch.Generator().manual_seed(cfg.seed + 1), "feet")
+            self.pool_style = self.texts.clip_style[self.pool.clip]
         self.diffusion = Diffusion(cfg.diffusion_steps)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.ema = EMA(self.net.state_dict(), cfg.ema_decay)
@@ -242,12 +255,13 @@ class Trainer:
         t = torch.randint(self.diffusion.T, (cfg.batch,), generator=self.gen)
         noise = torch.randn(cfg.batch, cfg.segment.frames, x.shape[-1], generator=self.gen)
         persona = self.persona_batch(x, shapes, clip) if cfg.model.persona else None
+        x_init = self.swapped_initial(x, shapes, clip, persona) if self.pool is not None else x[:, 0]
         if self.world > 1:  # every rank drew the global batch; keep this rank's slice
             sl = slice(self.rank * cfg.batch // self.world, (self.rank + 1) * cfg.batch // self.world)
-            x, shapes, t, noise = x[sl], shapes[sl], t[sl], noise[sl]
+            x, shapes, t, noise, x_init = x[sl], shapes[sl], t[sl], noise[sl], x_init[sl]
             persona = persona.select(sl) if persona is not None else None
         xn = self.norm.encode(x)
-        x_init_n, target_n = xn[:, 0], xn[:, 1:]
+        x_init_n, target_n = self.norm.encode(x_init), xn[:, 1:]
         x_t = self.diffusion.q_sample(target_n, t, noise)
         pred = self.model(t, x_t, x_init_n, None, persona)
         losses = motion_loss(pred, target_n, x[:, 0], shapes, self.norm, cfg.fk_weight, cfg.fkv_weight)
@@ -272,6 +286,21 @@ class Trainer:
         present = torch.rand(len(x), 3, generator=self.gen) >= self.cfg.persona_dropout
         present[:, 0] &= has_text
         return PersonaCond(text, shapes, trajectory_of(x[:, 1:]), present)
+
+    def swapped_initial(self, x: torch.Tensor, shapes: torch.Tensor, clip: torch.Tensor, persona: PersonaCond) -> torch.Tensor:
+        """The initial states the network continues from (B, 267): a persona_swap share of the
+        windows with a text get a feet-matched state of another style (see persona_swap)."""
+        x0 = x[:, 0].clone()
+        swap = (torch.rand(len(x), generator=self.gen) < self.cfg.persona_swap) & persona.present[:, 0]
+        rows = swap.nonzero()[:, 0]
+        if len(rows):
+            style = self.texts.clip_style[clip[rows]]
+            allowed = self.pool_style[None] != style[:, None]
+            pick = self.pool.partners(self.norm.encode(x0[rows]), clip[rows], self.cfg.persona_neighbours, self.gen, allowed)
+            xo, _ = self.ds.windows(self.ds.window_starts[self.pool.index[pick]], self.gen, shapes=shapes[rows],
+                                    mirror=self.pool.mirror[pick])
+            x0[rows] = xo[:, 0]
+        return x0
 
     def lr_at(self, step: int) -> float:
         cfg = self.cfg
