@@ -671,11 +671,18 @@ def _eval_persona(a) -> int:
         raise ValueError(f"the style adaptor knows {styles.cfg.labels}, the data's styles are {classes}")
     if a.evaluators < 1:
         raise ValueError(f"--evaluators must be 1 or more, not {a.evaluators}")
+    if a.identify:
+        name, _, style = a.identify.partition("=")
+        if style not in classes:
+            raise ValueError(f"--identify {a.identify}: STYLE must be one of {classes}")
+        if name not in motor.config.get("personas", {}):
+            raise ValueError(f"--identify {a.identify}: {a.model} was not characterized as {name!r} (adapt persona)")
     out = {}
-    if not a.skip_table:
+    if not a.skip_table or a.identify:  # read by the same evaluators, trained or loaded once
         encs, real, n_real = _style_evaluators(caches, classes, a.seconds, a.encoder_steps,
                                                [a.seed + k for k in range(a.evaluators)])
         init, shapes, what = initial_states(caches, a.n, a.seed)
+    if not a.skip_table:
         rows = eval_persona(methods_for(motor, base, styles), encs, init, shapes, classes, a.seconds, a.seed,
                             _runtime_config(a), a.speed)
         print(format_rows(f"persona (MotionPersona Table 3): {a.n} {what} x {len(classes)} styles x {a.seconds:g} s; "
@@ -685,13 +692,6 @@ def _eval_persona(a) -> int:
         out.update(real_CCA=real, rows=rows)
     if a.identify:
         from .eval.persona import recognised
-        name, _, style = a.identify.partition("=")
-        if style not in classes:
-            raise ValueError(f"--identify {a.identify}: STYLE must be one of {classes}")
-        if name not in motor.config.get("personas", {}):
-            raise ValueError(f"--identify {a.identify}: {a.model} was not characterized as {name!r} (adapt persona)")
-        encs, real, _ = _style_evaluators(caches, classes, a.seconds, a.encoder_steps, [a.seed + k for k in range(a.evaluators)])
-        init, shapes, what = initial_states(caches, a.n, a.seed)
         shapes = torch.tensor(motor.config["characterized"]["shape"]).expand(len(init), -1).clone()
         r = recognised(motor, name, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed)
         base_r = recognised(motor, None, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed)

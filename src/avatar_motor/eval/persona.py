@@ -63,6 +63,24 @@ def trajectory_errors(X: torch.Tensor, goal: torch.Tensor) -> tuple[float, float
     return tpe, float(torch.acos(cos).mean())
 
 
+def forward_goals(init: torch.Tensor, speed: float) -> torch.Tensor:
+    """World goal velocities (n, 3): forward from each initial state (n, 267) at `speed` m/s."""
+    return (canonical_transform(init.double()).R.float() @ torch.tensor([0.0, 0.0, 1.0])) * speed
+
+
+def _controls(setup=None, goal: torch.Tensor | None = None):
+    """Rollout controls: before the first segment, avatar k (in id order) gets setup(crowd, id, k)
+    and, with `goal` (n, 3), the goal velocity goal[k]."""
+    def controls(crowd, seg):
+        if seg == 0:
+            for k, i in enumerate(sorted(crowd.avatars)):
+                if setup is not None:
+                    setup(crowd, i, k)
+                if goal is not None:
+                    crowd.set_goal(i, (float(goal[k, 0]), float(goal[k, 2])))
+    return controls
+
+
 def _described(split: str):
     """setup(crowd, avatar, k, label): the k-th description of the label's split."""
     def setup(crowd, i, k, label):
@@ -89,23 +107,15 @@ def eval_persona(methods: dict, encoders: list, init: torch.Tensor, shapes: torc
     them, and TPE/TDE of rollouts steered forward at `speed` m/s."""
     cfg = cfg or RuntimeConfig()
     frames = int(seconds * FPS)
-    fwd = canonical_transform(init.double()).R.float() @ torch.tensor([0.0, 0.0, 1.0])  # (n, 3) each body's forward
-    goal = fwd * speed
+    goal = forward_goals(init, speed)
     rows = []
     for name, (motor, adaptor, setup) in methods.items():
         Xs, ys, Gs = [], [], []
         for c, label in enumerate(classes):
-            def controls(crowd, seg, label=label, steer=False):
-                if seg == 0:
-                    for k, i in enumerate(sorted(crowd.avatars)):
-                        if setup is not None:
-                            setup(crowd, i, k, label)
-                        if steer:
-                            crowd.set_goal(i, (float(goal[k, 0]), float(goal[k, 2])))
-            Xs.append(rollout(motor, init, shapes, frames, cfg, seed, controls, adaptor))
+            labelled = None if setup is None else (lambda crowd, i, k, label=label: setup(crowd, i, k, label))
+            Xs.append(rollout(motor, init, shapes, frames, cfg, seed, _controls(labelled), adaptor))
             ys.append(torch.full((len(init),), c))
-            Gs.append(rollout(motor, init, shapes, frames, cfg, seed,
-                              lambda crowd, seg, label=label: controls(crowd, seg, label, True), adaptor))
+            Gs.append(rollout(motor, init, shapes, frames, cfg, seed, _controls(labelled, goal), adaptor))
         X, y, G = torch.cat(Xs), torch.cat(ys), torch.cat(Gs)
         tpe, tde = trajectory_errors(G, goal.repeat(len(classes), 1))
         J = joints_of(X)
@@ -148,14 +158,9 @@ def stride_by_leg(motor, description: str | None, legs: list[float], n: int = 8,
         shape[SHAPE_NAMES.index("leg_length")] = leg
         shapes = shape.expand(n, -1).clone()
         init = torch.stack([standing_state(shape) for _ in range(n)])
-
-        def controls(crowd, seg):
-            if seg == 0:
-                for i in crowd.avatars:
-                    if description is not None:
-                        crowd.set_persona(i, description)
-                    crowd.set_goal(i, (0.0, speed))
-        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls)
+        setup = None if description is None else (lambda crowd, i, k: crowd.set_persona(i, description))
+        goal = torch.tensor([0.0, 0.0, speed]).expand(n, 3)  # the standing bodies face +Z
+        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, _controls(setup, goal))
         J = joints_of(X)[:, int(FPS):]
         s = [v for k in range(n) for v in strides(J[k])]
         P = rest_positions(rest_offsets(shape[None], torch.float64))[0]
@@ -170,16 +175,9 @@ def recognised(motor, persona: str | None, label: int, encoders: list, init: tor
     """The share of rollouts the evaluators read as class `label`: avatars given `persona` (a
     description or a characterized name; None: none), unsteered and steered forward at `speed`."""
     cfg = cfg or RuntimeConfig()
-    goal = (canonical_transform(init.double()).R.float() @ torch.tensor([0.0, 0.0, 1.0])) * speed
+    setup = None if persona is None else (lambda crowd, i, k: crowd.set_persona(i, persona))
     out = {}
-    for steer in (False, True):
-        def controls(crowd, seg, steer=steer):
-            if seg == 0:
-                for k, i in enumerate(sorted(crowd.avatars)):
-                    if persona is not None:
-                        crowd.set_persona(i, persona)
-                    if steer:
-                        crowd.set_goal(i, (float(goal[k, 0]), float(goal[k, 2])))
-        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, controls)
-        out["steered" if steer else "unsteered"] = top_k(encoders, X, torch.full((len(X),), label), 1)
+    for name, goal in (("unsteered", None), ("steered", forward_goals(init, speed))):
+        X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, _controls(setup, goal))
+        out[name] = top_k(encoders, X, torch.full((len(X),), label), 1)
     return out

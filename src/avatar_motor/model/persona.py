@@ -43,17 +43,6 @@ class PersonaCond:
     def __len__(self) -> int:
         return len(self.present)
 
-    @staticmethod
-    def make(batch: int, frames: int, text: torch.Tensor | None = None, shape: torch.Tensor | None = None,
-             trajectory: torch.Tensor | None = None) -> "PersonaCond":
-        """Conditions for `batch` rows; a condition given as None is absent for every row."""
-        present = torch.tensor([text is not None, shape is not None, trajectory is not None]).expand(batch, 3).clone()
-        return PersonaCond(
-            text if text is not None else torch.zeros(batch, TEXT_DIM),
-            shape if shape is not None else torch.zeros(batch, SHAPE_DIM),
-            trajectory if trajectory is not None else torch.zeros(batch, frames, TRAJ_FEATURES),
-            present)
-
     def select(self, rows) -> "PersonaCond":
         return PersonaCond(self.text[rows], self.shape[rows], self.trajectory[rows], self.present[rows])
 

@@ -42,6 +42,12 @@ def _subset(batch: SegmentBatch, rows: torch.Tensor) -> SegmentBatch:
     return SegmentBatch(**picked)
 
 
+def _local_goals(goals: list, Rt: torch.Tensor) -> torch.Tensor:
+    """World goal vectors (3,) or None per avatar -> (B, 3) in each body's canonical frame (None: 0)."""
+    z3 = torch.zeros(3, dtype=torch.float64)
+    return (Rt @ torch.stack([z3 if g is None else g.double() for g in goals])[..., None])[..., 0]
+
+
 class Cancelled(Exception):
     """A batch stopped because every avatar in it was cut meanwhile."""
 
@@ -161,10 +167,7 @@ class Sampler:
         traj = torch.zeros(B, N, TRAJ_FEATURES)
         if bool(has_goal.any()):
             Rt = tf.R.transpose(-1, -2)
-            z3 = torch.zeros(3, dtype=torch.float64)
-            v = (Rt @ torch.stack([z3 if g is None else g.double() for g in batch.v_goal])[..., None])[..., 0]
-            f = (Rt @ torch.stack([z3 if g is None else g.double() for g in batch.facing_goal])[..., None])[..., 0]
-            traj = goal_trajectory(x0c.double(), v, f, N).float()
+            traj = goal_trajectory(x0c.double(), _local_goals(batch.v_goal, Rt), _local_goals(batch.facing_goal, Rt), N).float()
         present = torch.stack((has_text, torch.ones(B, dtype=torch.bool), has_goal), 1)
         return PersonaCond(text, batch.shapes.float(), traj, present)
 
@@ -181,9 +184,7 @@ class Sampler:
             return
         vel = x0c[:, SLICES["velocities"]].view(B, 22, 3)
         J = x0c[:, SLICES["joints"]].view(B, 22, 3)
-        z3 = torch.zeros(3, dtype=torch.float64)
-        local = lambda goals: (Rt @ torch.stack([z3 if g is None else g.double() for g in goals])[..., None])[..., 0]  # noqa: E731
-        g_v, g_f = local(v_goals), local(f_goals)  # (B, 3) in each body's canonical frame
+        g_v, g_f = _local_goals(v_goals, Rt), _local_goals(f_goals, Rt)
         z, _ = facing_of(x0c)
         angle = torch.atan2(z[:, 2] * g_f[:, 0] - z[:, 0] * g_f[:, 2], (z * g_f).sum(-1))  # about +Y, z -> goal
         angle = torch.where(has_f, angle, torch.zeros_like(angle))

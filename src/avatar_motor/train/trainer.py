@@ -255,13 +255,16 @@ class Trainer:
         t = torch.randint(self.diffusion.T, (cfg.batch,), generator=self.gen)
         noise = torch.randn(cfg.batch, cfg.segment.frames, x.shape[-1], generator=self.gen)
         persona = self.persona_batch(x, shapes, clip) if cfg.model.persona else None
-        x_init = self.swapped_initial(x, shapes, clip, persona) if self.pool is not None else x[:, 0]
+        # the state the network continues from: the window's own, or (persona_swap) another's
+        swapped = self.swapped_initial(x, shapes, clip, persona) if self.pool is not None else None
         if self.world > 1:  # every rank drew the global batch; keep this rank's slice
             sl = slice(self.rank * cfg.batch // self.world, (self.rank + 1) * cfg.batch // self.world)
-            x, shapes, t, noise, x_init = x[sl], shapes[sl], t[sl], noise[sl], x_init[sl]
+            x, shapes, t, noise = x[sl], shapes[sl], t[sl], noise[sl]
             persona = persona.select(sl) if persona is not None else None
+            swapped = swapped[sl] if swapped is not None else None
         xn = self.norm.encode(x)
-        x_init_n, target_n = self.norm.encode(x_init), xn[:, 1:]
+        x_init_n = xn[:, 0] if swapped is None else self.norm.encode(swapped)
+        target_n = xn[:, 1:]
         x_t = self.diffusion.q_sample(target_n, t, noise)
         pred = self.model(t, x_t, x_init_n, None, persona)
         losses = motion_loss(pred, target_n, x[:, 0], shapes, self.norm, cfg.fk_weight, cfg.fkv_weight)
