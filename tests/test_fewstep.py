@@ -209,20 +209,54 @@ def test_few_step_training_resumes_exactly_and_exports_a_loadable_sampler(tmp_pa
         FewStepTrainer(_fs_cfg(tmp_path, fixture_cache, "consistency" if method == "emdm" else "emdm", "b"), progress=False)
 
 
+def _bound_few_step_motor(tmp_path, kind: str):
+    """A tiny base and a few-step model of the given kind bound to it (its base beside it, with
+    the recorded fingerprint), as the shipped family is."""
+    from avatar_motor.model.adaptor import base_fingerprint
+    from avatar_motor.model.checkpoint import load_base
+    base = tiny_motor(tmp_path)
+    _few_step_motor(tmp_path, kind)
+    cfg = json.loads((tmp_path / kind / "config.json").read_text())
+    cfg["sampler"].update(base="tiny", base_fingerprint=base_fingerprint(base.net))
+    (tmp_path / kind / "config.json").write_text(json.dumps(cfg))
+    gen = load_checkpoint(tmp_path / kind)
+    assert base_fingerprint(load_base(gen).net) == base_fingerprint(base.net)
+    return base, gen
+
+
+def test_after_an_impulse_preset_a_few_step_models_avatar_runs_on_its_teacher(tmp_path):
+    """The segments after an impulse preset (RuntimeConfig.impulse_teacher of them) are sampled by
+    the few-step model's DDPM base at its 8 steps, exactly as a crowd on the base makes them; the
+    avatar then returns to the few-step chain, and the other avatars never leave it."""
+    from avatar_motor.body.motion_state import SLICES
+    from avatar_motor.runtime.sampler import ADAPTOR_STEPS
+    base, gen = _bound_few_step_motor(tmp_path, "emdm")
+
+    def run(motor, teacher=3, steps=0, segments=1):
+        crowd = Crowd(motor, RuntimeConfig(backend="torch", steps=steps, impulse_teacher=teacher), 4)
+        ids = [crowd.spawn(position=(float(k), 0.0)) for k in range(2)]
+        crowd.impulse(ids[0], "back_flip")
+        return crowd, [crowd.step_segment() for _ in range(segments)]
+
+    close = lambda a, b: (a - b)[..., :SLICES["velocities"].start].abs().max() < 1e-4  # noqa: E731
+    crowd, segs = run(gen, segments=4)
+    on_base = run(base, steps=ADAPTOR_STEPS)[1][0]
+    alone = run(gen, teacher=0)[1][0]
+    assert close(segs[0][0], on_base[0]) and not close(segs[0][0], alone[0])  # the pushed one: its teacher
+    assert close(segs[0][1], alone[1])  # the other: the few-step chain
+    assert crowd.avatars[0].teacher_segments == 0  # 3 segments on the teacher, then back
+    crowd.impulse(0, "left_kick")
+    crowd.reset(0)  # a reset releases every control, the teacher's segments too
+    assert crowd.avatars[0].teacher_segments == 0
+
+
 def test_with_a_few_step_model_an_adaptors_avatars_run_on_its_base_as_trained(tmp_path):
     """A label adaptor trained on the base steers its avatars through the base with DDPM; the
     other avatars of the same crowd keep the few-step chain. Each avatar moves as it would in a
     crowd of its own kind."""
-    from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint
+    from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig
     from avatar_motor.runtime.sampler import ADAPTOR_STEPS
-    base = tiny_motor(tmp_path)
-    gen = _few_step_motor(tmp_path, "consistency")
-    cfg = json.loads((tmp_path / "consistency" / "config.json").read_text())
-    cfg["sampler"].update(base="tiny", base_fingerprint=base_fingerprint(base.net))
-    (tmp_path / "consistency" / "config.json").write_text(json.dumps(cfg))
-    gen = load_checkpoint(tmp_path / "consistency")
-    from avatar_motor.model.checkpoint import load_base
-    assert base_fingerprint(load_base(gen).net) == base_fingerprint(base.net)
+    base, gen = _bound_few_step_motor(tmp_path, "consistency")
     torch.manual_seed(3)
     ad = AdaptedDenoiser(base.net, AdaptorConfig(labels=["wave", "bow"])).eval()
     for z in ad.zero:  # a trained adaptor: its residuals are not zero

@@ -250,15 +250,25 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     i = crowd.spawn()
     for _ in range(20):
         crowd.next_frames()
-    lat = []
-    for k in range(5):
-        crowd.next_frames()
-        t0 = time.perf_counter()
-        crowd.push(i, "head", (0.0, 0.0, -3.0))
-        crowd.next_frames()  # generation of the reacting segment + its first frame
-        lat.append(time.perf_counter() - t0)
+
+    def reaction(command) -> list[float]:
+        lat = []
+        for k in range(5):
+            for _ in range(45):  # past the teacher's segments of the command before
+                crowd.next_frames()
+            t0 = time.perf_counter()
+            command()
+            crowd.next_frames()  # generation of the reacting segment + its first frame
+            lat.append(time.perf_counter() - t0)
+        return lat
+
+    lat = reaction(lambda: crowd.push(i, "head", (0.0, 0.0, -3.0)))
     out.append(f"reaction latency (command -> first reacting frame ready): {1e3 * sum(lat) / len(lat):.1f} ms mean, "
                f"{1e3 * max(lat):.1f} ms max; served, the clock shows it once ready (bench --serve)")
+    if crowd.sampler.teacher is not None:
+        lat = reaction(lambda: crowd.impulse(i, "back_flip"))
+        out.append(f"  an impulse preset (its segments from the DDPM teacher, impulse_teacher): {1e3 * sum(lat) / len(lat):.1f} "
+                   f"ms mean, {1e3 * max(lat):.1f} ms max")
     out.append(f"physics mode (DROP; {default.physics.candidates} candidates per segment): simulated frames per second of "
                "wall time per avatar, and for the crowd")
     best = 0

@@ -125,6 +125,10 @@ class RuntimeConfig:
     # regenerate (issue #26: a 30-60 Hz goal stream froze the avatar)
     recut_velocity: float = 0.2
     recut_facing: float = 0.2
+    # a few-step model's segments after an impulse preset (this many, 0 = none) are sampled by its
+    # DDPM base, the teacher it was distilled from, at its 8 steps: the one-step generator loses
+    # the kicks, flips and rolls its teacher makes (docs/deepmimic.md); 1.5 s covers a flip
+    impulse_teacher: int = 3
     # avatars in physics mode (issue #29, DROP): the solver's energies and the candidates it draws
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
 
@@ -148,6 +152,7 @@ class AvatarState:
     persona: str | None = None
     persona_text: torch.Tensor | None = None  # (TEXT_DIM,)
     near_target: bool = False  # came within face_target_beyond of it: no facing goal until 2x that away
+    teacher_segments: int = 0  # segments still to sample with the teacher (RuntimeConfig.impulse_teacher)
     epoch: int = 0  # bumped by every interruption
     # coalescing (see Crowd.cut): a cut's segment is being made; a further change waits for it
     regenerating: bool = False
@@ -311,6 +316,7 @@ class Crowd:
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
         a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
         a.near_target = False
+        a.teacher_segments = 0
         a.forces, a.springs, a.balls, a.shown_balls, a.pending_balls = [], [], [], [], []
         self.interrupt(i)
 
@@ -446,6 +452,7 @@ class Crowd:
         vw = _body_to_world(a) @ (torch.tensor(v) * IMPULSE_SCALE * scale)
         dv = torch.zeros(22, 3)
         dv[joints] = vw
+        a.teacher_segments = self.cfg.impulse_teacher
         self._add_velocity(a, dv)
 
     def push(self, i: int, joint: int | str, velocity, frame: str = "world") -> None:
@@ -636,7 +643,8 @@ class Crowd:
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
             control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
             adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[a.v_goal for a in avs],
-            facing_goal=[self._facing_goal(a) for a in avs], physics=jobs, personas=[a.persona_text for a in avs])
+            facing_goal=[self._facing_goal(a) for a in avs], physics=jobs, personas=[a.persona_text for a in avs],
+            teacher=[a.teacher_segments > 0 for a in avs])
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
@@ -758,6 +766,8 @@ class Crowd:
                     continue
                 n = batch.lengths[k] if batch.lengths else len(seg_w[k])
                 a.queue.extend(seg_w[k, :n].unbind(0))
+                if batch.teacher and batch.teacher[k]:
+                    a.teacher_segments -= 1
                 frames_balls = batch.ball_frames[k] if batch.ball_frames and batch.ball_frames[k] else [[]] * n
                 a.ball_queue.extend(list(b) for b in frames_balls[:n])
                 a.balls = list(a.ball_queue[-1]) if a.physics else []

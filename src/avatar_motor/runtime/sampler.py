@@ -6,6 +6,8 @@ labels, styles, reaching targets) replace the base network for the avatars they 
 from __future__ import annotations
 
 import dataclasses
+import logging
+import weakref
 
 import torch
 
@@ -19,6 +21,7 @@ from ..model.onnx import onnx_denoiser
 from .stages import SegmentBatch
 
 BACKENDS = ("torch", "onnxruntime")
+log = logging.getLogger("avatar_motor.runtime")
 
 # the joints that carry a steering impulse: the whole body. The trunk alone (as in the
 # forward_run preset) was the default until measured (eval control, 45 x 3 s, impulse 1.5):
@@ -31,6 +34,25 @@ STEER_JOINTS = list(range(22))
 # DDPM steps for an adaptor's avatars when the runtime's model is a few-step one (the adaptor
 # runs on its base, as trained: the runtime's 8-step default before few-step sampling)
 ADAPTOR_STEPS = 8
+
+
+TEACHER = -2  # the group of rows sampled by a few-step model's teacher (Sampler.sample)
+
+
+def _teacher(motor: Motor) -> Motor | None:
+    """A few-step model's DDPM base (checkpoint.load_base), loaded once per model object; None,
+    with a log line, when it is not beside the model: impulse presets then run on the model itself."""
+    if motor.net not in _TEACHERS:  # keyed by the network: a Motor (a dataclass) is not hashable
+        from ..model.checkpoint import CheckpointError, load_base
+        try:
+            _TEACHERS[motor.net] = load_base(motor)
+        except CheckpointError as e:
+            log.warning("impulse presets run on the few-step model itself: %s", e)
+            _TEACHERS[motor.net] = None
+    return _TEACHERS[motor.net]
+
+
+_TEACHERS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def _subset(batch: SegmentBatch, rows: torch.Tensor) -> SegmentBatch:
@@ -72,6 +94,12 @@ class Sampler:
         # the base network as ONNX Runtime runs it (an adaptor's avatars use torch; so does a persona
         # network, whose persona conditions the exported graph does not take)
         self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona else motor.net
+        # a few-step model's teacher for the segments after an impulse preset (impulse_teacher)
+        self.teacher = None
+        if self.kind != "ddpm" and cfg.impulse_teacher > 0:
+            base = _teacher(motor)
+            if base is not None:
+                self.teacher = onnx_denoiser(base.net) if cfg.backend == "onnxruntime" else base.net
 
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
         """Segments (B, N, 267), float32, in the canonical frames whose world transforms are tf, from
@@ -79,18 +107,23 @@ class Sampler:
         (raises Cancelled): the batch is no longer wanted.
 
         The avatars an adaptor steers are sampled as it was trained: on its base with DDPM (with a
-        few-step model, ADAPTOR_STEPS), one batch per adaptor; the others with the model's own
-        sampler. Rows are independent, so the split changes no avatar's motion."""
-        groups = sorted({k for k in batch.adaptors if k is not None})
+        few-step model, ADAPTOR_STEPS), one batch per adaptor; so are, on the base network itself,
+        a few-step model's avatars whose batch row asks for its teacher (after an impulse preset);
+        the others with the model's own sampler. Rows are independent, so the split changes no
+        avatar's motion."""
+        taught = [self.teacher is not None and bool(batch.teacher and batch.teacher[k]) and ad is None
+                  for k, ad in enumerate(batch.adaptors)]
+        groups = sorted({k for k in batch.adaptors if k is not None}) + ([TEACHER] if any(taught) else [])
         if not groups:
             return self._sample(batch, x0c, tf, cancelled, self.kind == "ddpm", None)
-        which = torch.tensor([-1 if k is None else k for k in batch.adaptors])
+        which = torch.tensor([TEACHER if t else -1 if k is None else k for k, t in zip(batch.adaptors, taught)])
         out = torch.empty(len(batch), self.motor.net.cfg.frames, STATE_DIM)
         for k in [-1, *groups]:
             rows = (which == k).nonzero()[:, 0]
             if len(rows):
                 out[rows] = self._sample(_subset(batch, rows), x0c[rows], Transform(tf.R[rows], tf.t[rows]), cancelled,
-                                         k >= 0 or self.kind == "ddpm", self.adaptors[k] if k >= 0 else None)
+                                         k != -1 or self.kind == "ddpm",
+                                         self.adaptors[k] if k >= 0 else TEACHER if k == TEACHER else None)
         return out
 
     def _sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled, ddpm: bool, adaptor) -> torch.Tensor:
@@ -122,9 +155,12 @@ class Sampler:
         return motor.norm.decode(seg_n)
 
     def _denoiser(self, batch: SegmentBatch, tf, cond, ad, x0c):
-        """The base network, or the adaptor ad with each avatar's controls (every row of the batch
-        is one it steers)."""
+        """The base network; the teacher (ad TEACHER: the few-step model's DDPM base); or the adaptor
+        ad with each avatar's controls (every row of the batch is one it steers)."""
         net = self.net
+        if isinstance(ad, int) and ad == TEACHER:
+            teacher = self.teacher
+            return lambda x_t, t, z=None: teacher(t, x_t, cond)
         if ad is None:
             if self.motor.net.cfg.persona:
                 persona = self._persona(batch, tf, x0c)

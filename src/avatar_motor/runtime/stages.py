@@ -46,6 +46,7 @@ class SegmentBatch:
     facing_goal: list  # world unit (3,) or None
     physics: list  # a PhysicsJob for an avatar in physics mode, else None
     personas: list | None = None  # each avatar's persona text embedding (TEXT_DIM,) or None
+    teacher: list | None = None  # bool each: sampled by a few-step model's DDPM base (after an impulse preset)
     # what compute() found, for commit: how many frames of each row to queue (a physics segment
     # stops early to resample after a hit), and the balls of each frame [row][frame][ball]
     lengths: list | None = None
