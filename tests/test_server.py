@@ -324,10 +324,13 @@ def test_record_and_events_downloads(server):
     with urllib.request.urlopen(f"{base}/api/events", timeout=10) as r:
         ev = json.loads(r.read())
     assert ev["version"] == 1 and isinstance(ev["events"], list)
+    with urllib.request.urlopen(f"{base}/api/record?avatar=0&seconds=1&format=bvh&skeleton=ue5", timeout=30) as r:
+        assert b"JOINT thigh_l" in r.read()  # Unreal's names
     import urllib.error
-    with pytest.raises(urllib.error.HTTPError) as e:
-        urllib.request.urlopen(f"{base}/api/record?avatar=0&format=fbx", timeout=10)
-    assert e.value.code == 400
+    for bad in ("format=fbx&seconds=0", "format=obj", "skeleton=maya"):  # each named in a 400, the server goes on
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(f"{base}/api/record?avatar=0&{bad}", timeout=10)
+        assert e.value.code == 400
 
 
 def test_target_command_drives_a_served_reaching_adaptor_at_its_scale(tmp_path):

@@ -77,10 +77,11 @@ class Motion:
     def seconds(self) -> float:
         return len(self) / self.fps
 
-    def save(self, path: str | Path) -> Path:
-        """Write BVH (.bvh), glTF (.glb) or the states (.npz), by the file's extension."""
+    def save(self, path: str | Path, skeleton: str = "smpl") -> Path:
+        """Write BVH (.bvh), glTF (.glb), the states (.npz) or FBX (.fbx, through Blender), by the
+        file's extension; skeleton: the joints' names, smpl (ours), mixamo or ue5."""
         from .io.export import write_motion
-        return write_motion(path, self.states, self.shape, self.fps)
+        return write_motion(path, self.states, self.shape, self.fps, skeleton=skeleton)
 
 
 def motion_of(states: torch.Tensor, shape: torch.Tensor | None = None) -> Motion:

@@ -165,6 +165,13 @@ def _runtime_config(a):
     return cfg
 
 
+def _add_skeleton_arg(parser) -> None:
+    # the names are io/skeletons.SKELETONS' (this parser imports no torch); a wrong one is refused
+    # with the list before anything runs
+    parser.add_argument("--skeleton", default="smpl", help="joint names of the exported files: smpl (ours), mixamo "
+                        "(mixamorig:Hips, ...) or ue5 (Unreal's mannequin: pelvis, thigh_l, ...)")
+
+
 def _add_runtime_args(parser) -> None:
     parser.add_argument("--steps", type=int, help="denoising steps per segment (default: the runtime's)")
     parser.add_argument("--backend", choices=["torch", "onnxruntime"], help="what runs the network (default: onnxruntime)")
@@ -332,7 +339,8 @@ def _export_onnx(a) -> int:
 def _generate(a) -> int:
     import torch
 
-    from .io.export import write_motion
+    from .io.export import MOTION_FORMATS, write_motion
+    from .io.skeletons import joint_names
     from .model.checkpoint import load_checkpoint
     from .runtime.crowd import IMPULSE_PRESETS, Crowd
 
@@ -344,8 +352,9 @@ def _generate(a) -> int:
     if a.seconds <= 0 or a.seconds > 3600:
         raise ValueError("--seconds must be in (0, 3600]")
     out = Path(a.out)
-    if out.suffix.lower() not in (".bvh", ".glb", ".npz"):
-        raise ValueError(f"--out {out}: use a .bvh, .glb or .npz file name")
+    if out.suffix.lower() not in MOTION_FORMATS:
+        raise ValueError(f"--out {out}: use a {', '.join(MOTION_FORMATS)} file name")
+    joint_names(a.skeleton)  # a misspelt convention is named before the motion is made
     labels = _timed_args(a.label, "--label", lambda v: None if v.lower() in ("none", "free") else v)
     personas = _timed_args(a.persona, "--persona", lambda v: None if v.strip().lower() == "none" else v)
     targets = _timed_args(a.target, "--target", _parse_xz)
@@ -384,7 +393,8 @@ def _generate(a) -> int:
             crowd.throw(i, position, velocity, mass)
         frames.append(crowd.next_frames()[i])
     X = torch.stack(frames)
-    write_motion(out, X, crowd.shape(i), meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")})
+    write_motion(out, X, crowd.shape(i), meta={"model": motor.name, "seed": a.seed, "licence": motor.config.get("licence", "")},
+                 skeleton=a.skeleton)
     print(f"{out}: {len(X)} frames ({len(X) / 30:.1f} s) from {motor.name}")
     return 0
 
@@ -447,8 +457,9 @@ def _serve_headless(a, world) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for i in world.crowd.ids():
         X = world.recording(i)
-        for ext in ("bvh", "npz"):
-            write_motion(out / f"avatar{i}.{ext}", X, world.crowd.shape(i), meta={"seed": a.seed, "script": a.script})
+        for ext in ("bvh", "npz", *(("fbx",) if a.fbx else ())):
+            write_motion(out / f"avatar{i}.{ext}", X, world.crowd.shape(i), meta={"seed": a.seed, "script": a.script},
+                         skeleton=a.skeleton)
     print(f"{out}: {frames} frames for {len(world.crowd)} avatar(s), seed {a.seed}")
     return 0
 
@@ -871,6 +882,8 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--script", help="events JSON (from the studio's 'save events' or /api/events)")
     sv.add_argument("--seconds", type=float, help="headless length (default: the script's frames)")
     sv.add_argument("--export", help="headless output folder (BVH + npz per avatar)")
+    sv.add_argument("--fbx", action="store_true", help="headless: FBX files too (needs Blender)")
+    _add_skeleton_arg(sv)
     sv.set_defaults(func=_serve)
 
     ox = sub.add_parser("export-onnx", help="the model's network as an ONNX file (engines: Unity Sentis, Unreal NNE)")
@@ -878,7 +891,7 @@ def build_parser() -> argparse.ArgumentParser:
     ox.add_argument("--out", required=True, help="the .onnx file to write")
     ox.set_defaults(func=_export_onnx)
 
-    g = sub.add_parser("generate", help="generate motion to a .bvh, .glb or .npz file")
+    g = sub.add_parser("generate", help="generate motion to a .bvh, .glb, .npz or .fbx file")
     g.add_argument("--model", default=str(DEFAULT_MODEL))
     g.add_argument("--seconds", type=float, default=10.0)
     g.add_argument("--seed", type=int, default=0)
@@ -901,7 +914,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--force", action="append", help="JOINT:FX,FY,FZ:SECONDS[@SECONDS] world newtons held on a joint (physics; repeatable)")
     g.add_argument("--ball", action="append", help="X,Y,Z:VX,VY,VZ[:MASS][@SECONDS] a ball thrown (physics; repeatable)")
     _add_runtime_args(g)
-    g.add_argument("--out", required=True)
+    g.add_argument("--out", required=True, help="a .bvh, .glb, .npz or .fbx file (FBX through Blender: apt-get install blender)")
+    _add_skeleton_arg(g)
     g.set_defaults(func=_generate)
 
     ev = sub.add_parser("eval", help="measure a model").add_subparsers(dest="ecmd", required=True)

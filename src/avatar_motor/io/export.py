@@ -1,6 +1,7 @@
 """Exporters for motion on the canonical body: BVH (canonical skeleton, real offsets, centimetres,
-re-imports exactly), AMASS-style npz (the motion state plus named arrays) and glTF binary (see
-io/gltf.py). All write through a temporary file and a rename.
+re-imports exactly), AMASS-style npz (the motion state plus named arrays), glTF binary (see
+io/gltf.py) and FBX (through Blender, io/fbx.py). Joints are named in the convention asked for
+(io/skeletons.py). All write through a temporary file and a rename.
 """
 from __future__ import annotations
 
@@ -15,29 +16,41 @@ from ..body.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, SHAPE_NAMES, rest_
 from ..body.motion_state import FPS, unpack
 from .atomic import write_file
 from .bvh import bvh_from_rotations, write_bvh
+from .skeletons import joint_names
 
 BVH_SCALE = 100.0  # metres -> centimetres, what BVH viewers expect
 LEAF_END_SITES = {"head": (0.0, 0.10, 0.0), "left_wrist": (0.08, 0.0, 0.0), "right_wrist": (-0.08, 0.0, 0.0),
                   "left_foot": (0.0, 0.0, 0.05), "right_foot": (0.0, 0.0, 0.05)}
 
 
-def canonical_bvh(states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS):
-    """A BVH object of the canonical skeleton from world states (T, 267)."""
+def canonical_bvh(states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS, skeleton: str = "smpl"):
+    """A BVH object of the canonical skeleton from world states (T, 267), its joints named in the
+    `skeleton` convention."""
     u = unpack(states.double())
     local = torch.cat((u.root_rot[:, None], u.local_rot), 1)  # (T, 22, 3, 3)
     off = rest_offsets(shape, torch.float64).numpy() * BVH_SCALE
     ends = {JOINT_NAMES.index(n): np.array(v) * BVH_SCALE for n, v in LEAF_END_SITES.items()}
-    return bvh_from_rotations(JOINT_NAMES, PARENTS, off, u.root_pos.numpy() * BVH_SCALE, local, 1.0 / fps, "ZXY", ends)
+    return bvh_from_rotations(joint_names(skeleton), PARENTS, off, u.root_pos.numpy() * BVH_SCALE, local, 1.0 / fps, "ZXY",
+                              ends)
+
+
+MOTION_FORMATS = (".bvh", ".glb", ".npz", ".fbx")
 
 
 def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS,
-                 meta: dict | None = None) -> Path:
-    """Write world states (T, 267) as .bvh, .npz or .glb, chosen by the suffix."""
+                 meta: dict | None = None, skeleton: str = "smpl") -> Path:
+    """Write world states (T, 267) as .bvh, .glb, .npz or .fbx, chosen by the suffix, the joints
+    named in the `skeleton` convention (io/skeletons.py)."""
     path = Path(path)
     suffix = path.suffix.lower()
+    names = joint_names(skeleton)  # an unknown convention is refused before anything is written
     if suffix == ".bvh":
-        b = canonical_bvh(states, shape, fps)
+        b = canonical_bvh(states, shape, fps, skeleton)
         write_file(path, lambda tmp: write_bvh(tmp, b))
+    elif suffix == ".fbx":
+        from .fbx import bvh_to_fbx
+        b = canonical_bvh(states, shape, fps, skeleton)
+        write_file(path, lambda tmp: bvh_to_fbx(b, tmp))
     elif suffix == ".npz":
         u = unpack(states.double())
         arrays = {
@@ -47,7 +60,7 @@ def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | N
             "pose_body": rot.matrix_to_axis_angle(u.local_rot).reshape(len(states), -1).float().numpy(),
             "joints": u.joints.float().numpy(), "velocities": u.velocities.float().numpy(),
             "betas": (shape if shape is not None else torch.zeros(len(SHAPE_NAMES))).float().numpy(),
-            "joint_names": np.array(JOINT_NAMES), "shape_names": np.array(SHAPE_NAMES),
+            "joint_names": np.array(names), "shape_names": np.array(SHAPE_NAMES),
             "meta": np.array(json.dumps(meta or {})),
         }
 
@@ -59,9 +72,9 @@ def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | N
         from .gltf import write_glb
         if suffix == ".gltf":
             raise ValueError(f"{path}: write glTF binary (.glb), which holds the body and its animation in one file")
-        write_file(path, lambda tmp: write_glb(tmp, states, shape, fps))
+        write_file(path, lambda tmp: write_glb(tmp, states, shape, fps, names))
     else:
-        raise ValueError(f"{path}: unknown motion format {suffix!r}; use .bvh, .npz or .glb")
+        raise ValueError(f"{path}: unknown motion format {suffix!r}; use {', '.join(MOTION_FORMATS)}")
     return path
 
 

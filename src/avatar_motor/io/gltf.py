@@ -73,7 +73,10 @@ class _Builder:
         return len(self.accessors) - 1
 
 
-def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = 30.0) -> None:
+def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = 30.0,
+              names: list[str] | None = None) -> None:
+    """names: the joints' node names (default ours; io/skeletons.py)."""
+    names = list(names or JOINT_NAMES)
     u = unpack(states.double())
     T = states.shape[0]
     off = rest_offsets(shape, torch.float64).numpy()
@@ -88,7 +91,7 @@ def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None
                 "indices": B.add(i, _UINT16, "SCALAR", _ELEMENTS), "material": 0}
         meshes.append({"name": name, "primitives": [prim]})
     nodes = []
-    for j, name in enumerate(JOINT_NAMES):
+    for j, name in enumerate(names):
         node = {"name": name, "translation": (u.root_pos[0].tolist() if j == 0 else off[j].tolist()),
                 "rotation": q_xyzw[0, j].tolist(), "children": []}
         nodes.append(node)
@@ -98,7 +101,7 @@ def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None
               0.05, 0.05, 0.04, 0.04, 0.035, 0.035]
     for j in range(len(JOINT_NAMES)):
         r = radius[j] * 1.1
-        nodes.append({"name": f"{JOINT_NAMES[j]}_ball", "mesh": 1, "scale": [r, r, r]})
+        nodes.append({"name": f"{names[j]}_ball", "mesh": 1, "scale": [r, r, r]})
         nodes[j]["children"].append(len(nodes) - 1)
         if j == 0:
             continue
@@ -110,7 +113,7 @@ def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None
         qa = rot.matrix_to_quat(rot.rotation_between(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
                                                      torch.from_numpy(d))).numpy()
         rr = min(radius[j], radius[p]) * 0.9
-        nodes.append({"name": f"{JOINT_NAMES[p]}_to_{JOINT_NAMES[j]}", "mesh": 0, "scale": [rr, length, rr],
+        nodes.append({"name": f"{names[p]}_to_{names[j]}", "mesh": 0, "scale": [rr, length, rr],
                       "rotation": [float(qa[1]), float(qa[2]), float(qa[3]), float(qa[0])]})
         nodes[p]["children"].append(len(nodes) - 1)
     for nd in nodes:

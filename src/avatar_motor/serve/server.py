@@ -186,23 +186,32 @@ class Server:
                                   "fps_measured": round(self.fps_measured, 1), "clients": len(self.clients)})
 
     async def record(self, request):
-        """The last N seconds of one avatar as a file: ?avatar=0&seconds=10&format=bvh|glb|npz."""
+        """The last N seconds of one avatar as a file: ?avatar=0&seconds=10&format=bvh|glb|npz|fbx
+        &skeleton=smpl|mixamo|ue5 (io/skeletons.py; FBX through Blender)."""
+        import functools
         import tempfile
 
-        from ..io.export import write_motion
+        from ..io.export import MOTION_FORMATS, write_motion
+        from ..io.skeletons import joint_names
         try:
             i = int(request.query.get("avatar", "0"))
             seconds = float(request.query.get("seconds", "10"))
             fmt = request.query.get("format", "bvh")
-            if fmt not in ("bvh", "glb", "npz") or not 0 < seconds <= 600:
-                raise ValueError("format must be bvh, glb or npz and seconds in (0, 600]")
+            skeleton = request.query.get("skeleton", "smpl")
+            if f".{fmt}" not in MOTION_FORMATS or not 0 < seconds <= 600:
+                raise ValueError(f"format must be one of {[f[1:] for f in MOTION_FORMATS]} and seconds in (0, 600]")
+            joint_names(skeleton)
             X = self.world.recording(i, seconds)
             shape = self.world.crowd.shape(i)
         except (ValueError, CommandError, KeyError) as e:
             raise web.HTTPBadRequest(text=str(e)) from None
         with tempfile.TemporaryDirectory() as d:
             path = Path(d) / f"avatar{i}.{fmt}"
-            await asyncio.get_running_loop().run_in_executor(None, write_motion, path, X, shape)
+            try:
+                await asyncio.get_running_loop().run_in_executor(
+                    None, functools.partial(write_motion, path, X, shape, skeleton=skeleton))
+            except ValueError as e:  # FBX without Blender, or Blender failing: the message says which
+                raise web.HTTPBadRequest(text=str(e)) from None
             body = path.read_bytes()
         return web.Response(body=body, content_type="application/octet-stream",
                             headers={"Content-Disposition": f'attachment; filename="avatar{i}_{seconds:g}s.{fmt}"'})
