@@ -61,6 +61,8 @@ def test_studio_in_chromium(tmp_path, artifacts):
         hud = page.evaluate("['fps', 'drawn', 'stalls'].map((k) => Number(document.getElementById(k).textContent))")
         assert hud[0] >= 25 and hud[1] > 0 and hud[2] >= 0, hud
         assert max(abs(a - b) for a, b in zip(j0, j1)) > 1e-3  # the avatar moves by itself
+        # drawn as the skinned human, fitted to its body by the server (/api/human) and posed from the stream
+        page.wait_for_function("window.studio.humans().includes(0)", timeout=60000)
         # a push through the page's own socket: the head is thrown backwards
         ack = page.evaluate("window.studio.send({type: 'push', avatar: 0, joint: 'head', velocity: [0, 0, -4]})")
         assert ack["ok"]

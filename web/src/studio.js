@@ -1,6 +1,7 @@
 // The avatar-motor studio: a live view of the served world and its controls (docs/protocol.md).
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
+import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -138,13 +139,75 @@ class CrowdView {
     return { avatar, joint, point: h.point };
   }
 }
+// the skinned human (body/human.py): for the first HUMANS avatars, each fitted to its own body by
+// the server (/api/human: a .glb of its skeleton and skinned mesh) and posed from the stream's
+// rotations (joint 0 the pelvis's global rotation and position, the others relative to their
+// parent, as the glTF's joint nodes take them); the rest of a crowd is drawn as capsules
+const HUMANS = 16;
+const loader = new GLTFLoader();
+class HumanView {
+  constructor() { this.humans = new Map(); this.loading = new Set(); this.enabled = true; }
+  // avatars drawn as humans now; loads the missing ones and drops those gone
+  sync(bodies) {
+    const want = this.enabled ? [...bodies.keys()].sort((x, y) => x - y).slice(0, HUMANS) : [];
+    for (const id of [...this.humans.keys()]) {
+      if (!want.includes(id)) { scene.remove(this.humans.get(id).root); this.humans.delete(id); }
+    }
+    for (const id of want) {
+      if (this.humans.has(id) || this.loading.has(id) || !JOINTS.length) continue;
+      this.loading.add(id);
+      loader.load(`/api/human?avatar=${id}${token ? "&token=" + encodeURIComponent(token) : ""}`, (gltf) => {
+        this.loading.delete(id);
+        if (!bodies.has(id) || !this.enabled) return;
+        const root = gltf.scene;
+        const bones = JOINTS.map((n) => root.getObjectByName(n));
+        let mesh = null;
+        root.traverse((o) => { if (o.isSkinnedMesh) { mesh = o; o.castShadow = true; o.frustumCulled = false; } });
+        if (!mesh || bones.some((b) => !b)) { state.errors.push(`avatar ${id}: the human's skeleton is incomplete`); return; }
+        mesh.material = mesh.material.clone();
+        mesh.material.color.lerp(_c.setHex(COLORS[id % COLORS.length]), 0.25);  // each avatar's colour, lightly
+        scene.add(root);
+        this.humans.set(id, { root, bones, mesh });
+        view.dirty = true;
+      }, undefined, () => { this.loading.delete(id); });
+    }
+    for (const [id, h] of this.humans) {
+      const b = bodies.get(id);
+      if (!b || !b.rotations) continue;
+      const p = b.positions, q = b.rotations;
+      h.bones[0].position.set(p[0], p[1], p[2]);
+      for (let j = 0; j < 22; j++) h.bones[j].quaternion.set(q[4 * j], q[4 * j + 1], q[4 * j + 2], q[4 * j + 3]);
+    }
+  }
+  // the bodies still drawn as capsules
+  others(bodies) {
+    if (!this.humans.size) return bodies;
+    return new Map([...bodies].filter(([id]) => !this.humans.has(id)));
+  }
+  // the avatar under the ray and its joint nearest the hit, or null
+  pick(ray) {
+    const meshes = [...this.humans.values()].map((h) => h.mesh);
+    const hits = meshes.length ? ray.intersectObjects(meshes) : [];
+    if (!hits.length) return null;
+    const id = [...this.humans.entries()].find(([, h]) => h.mesh === hits[0].object)[0];
+    const p = bodies.get(id).positions, x = hits[0].point;
+    let joint = 0, best = Infinity;
+    for (let j = 0; j < 22; j++) {
+      const d = (p[3 * j] - x.x) ** 2 + (p[3 * j + 1] - x.y) ** 2 + (p[3 * j + 2] - x.z) ** 2;
+      if (d < best) { best = d; joint = j; }
+    }
+    return { avatar: id, joint, point: hits[0].point };
+  }
+}
 const view = new CrowdView();
+const humans = new HumanView();
 const bodies = new Map();
 
 // ---------------------------------------------------------------- connection
 const state = { frame: 0, connected: false, fpsTimes: [], renderTimes: [], selected: 0, model: "", lastStats: null,
   received: 0, errors: [], stalls: 0, stallsRecent: 0, physics: new Set(), balls: [] };
 window.studio = state;  // for tests and the console
+state.humans = () => [...humans.humans.keys()];  // the avatars drawn as skinned humans
 let ws;
 let nextId = 1;
 const pending = new Map();
@@ -211,9 +274,10 @@ function onFrame(buf) {
   for (let k = 0; k < n; k++) {
     const id = dv.getUint32(off, true);
     const pos = new Float32Array(buf.slice(off + 4, off + 4 + 264));
+    const rot = new Float32Array(buf.slice(off + 4 + 264, off + 4 + 264 + 352));
     off += 4 + 264 + 352;
     seen.add(id);
-    if (PARENTS.length) bodies.set(id, { id, positions: pos });
+    if (PARENTS.length) bodies.set(id, { id, positions: pos, rotations: rot });
   }
   for (const id of [...bodies.keys()]) if (!seen.has(id)) bodies.delete(id);
   view.dirty = true;
@@ -391,6 +455,7 @@ const download = (fmt) => {
 };
 $("bvh").onclick = () => download("bvh");
 $("glb").onclick = () => download("glb");
+$("human").onchange = (e) => { humans.enabled = e.target.checked; view.dirty = true; };
 $("events").onclick = async () => {
   const r = await fetch(`/api/events${token ? "?token=" + token : ""}`);
   const blob = new Blob([await r.text()], { type: "application/json" });
@@ -465,7 +530,7 @@ renderer.domElement.addEventListener("pointerdown", (ev) => {
     $("magnet").classList.remove("on");
     return;
   }
-  const hit = view.pick(ray);
+  const hit = humans.pick(ray) || view.pick(ray);
   if (!hit) return;
   const { avatar, joint, point } = hit;
   state.selected = avatar;
@@ -525,7 +590,8 @@ function animate(t) {
   }
   if (t - lastPad > 150 && navigator.getGamepads && [...navigator.getGamepads()].some(Boolean)) { lastPad = t; steer(); }
   orbit.update();
-  view.draw(bodies);
+  humans.sync(bodies);
+  view.draw(humans.others(bodies));
   renderer.render(scene, camera);
   state.renderTimes.push(t);
   while (state.renderTimes.length && t - state.renderTimes[0] > 1000) state.renderTimes.shift();

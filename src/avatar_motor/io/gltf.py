@@ -1,6 +1,8 @@
-"""glTF 2.0 binary (.glb) export: the canonical skeleton as a node hierarchy with a capsule-ish
-mannequin of our own (a cylinder per bone, a sphere per joint) and one animation clip (root
-translation + every joint's local rotation). Opens in any glTF viewer; Y up, metres, like our world.
+"""glTF 2.0 binary (.glb) export: the canonical skeleton as a node hierarchy and one animation clip
+(root translation + every joint's local rotation), with a body: the skinned human (body/human.py:
+one mesh, a skin over the joint nodes, the avatar's rest pose as the bind pose) or the capsule
+mannequin of our own (a cylinder per bone, a sphere per joint, parented to the joints). Opens in any
+glTF viewer; Y up, metres, like our world.
 """
 from __future__ import annotations
 
@@ -16,7 +18,8 @@ from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES, PARENTS, rest_offsets
 from ..body.motion_state import unpack
 
-_FLOAT, _UINT16 = 5126, 5123
+_FLOAT, _UINT16, _UINT8 = 5126, 5123, 5121
+BODIES = ("human", "capsules")
 _ARRAY, _ELEMENTS = 34962, 34963
 
 
@@ -73,33 +76,17 @@ class _Builder:
         return len(self.accessors) - 1
 
 
-def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = 30.0,
-              names: list[str] | None = None) -> None:
-    """names: the joints' node names (default ours; io/skeletons.py)."""
-    names = list(names or JOINT_NAMES)
-    u = unpack(states.double())
-    T = states.shape[0]
-    off = rest_offsets(shape, torch.float64).numpy()
-    local = torch.cat((u.root_rot[:, None], u.local_rot), 1)
-    q = rot.matrix_to_quat(local).numpy()  # (T, 22, w x y z)
-    q_xyzw = np.concatenate((q[..., 1:], q[..., :1]), -1).astype(np.float32)
-    B = _Builder()
-    meshes, materials = [], [{"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.45, 0.62, 0.85, 1.0],
-                                                                      "metallicFactor": 0.0, "roughnessFactor": 0.6}}]
+def _capsules(B: _Builder, nodes: list, names: list[str], off: np.ndarray) -> list:
+    """The capsule mannequin: a sphere per joint and a cylinder per bone, children of the joint
+    nodes (rigid parts). Returns the meshes."""
+    meshes = []
     for name, (p, n, i) in (("bone", _cylinder()), ("joint", _sphere())):
         prim = {"attributes": {"POSITION": B.add(p, _FLOAT, "VEC3", _ARRAY, True), "NORMAL": B.add(n, _FLOAT, "VEC3", _ARRAY)},
                 "indices": B.add(i, _UINT16, "SCALAR", _ELEMENTS), "material": 0}
         meshes.append({"name": name, "primitives": [prim]})
-    nodes = []
-    for j, name in enumerate(names):
-        node = {"name": name, "translation": (u.root_pos[0].tolist() if j == 0 else off[j].tolist()),
-                "rotation": q_xyzw[0, j].tolist(), "children": []}
-        nodes.append(node)
-    for j in range(1, len(JOINT_NAMES)):
-        nodes[PARENTS[j]]["children"].append(j)
     radius = [0.09, 0.075, 0.075, 0.08, 0.06, 0.06, 0.08, 0.045, 0.045, 0.09, 0.035, 0.035, 0.05, 0.05, 0.05, 0.1,
               0.05, 0.05, 0.04, 0.04, 0.035, 0.035]
-    for j in range(len(JOINT_NAMES)):
+    for j in range(len(names)):
         r = radius[j] * 1.1
         nodes.append({"name": f"{names[j]}_ball", "mesh": 1, "scale": [r, r, r]})
         nodes[j]["children"].append(len(nodes) - 1)
@@ -116,6 +103,61 @@ def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None
         nodes.append({"name": f"{names[p]}_to_{names[j]}", "mesh": 0, "scale": [rr, length, rr],
                       "rotation": [float(qa[1]), float(qa[2]), float(qa[3]), float(qa[0])]})
         nodes[p]["children"].append(len(nodes) - 1)
+    return meshes
+
+
+def _human(B: _Builder, nodes: list, shape, off: np.ndarray, materials: list) -> tuple[list, list, list]:
+    """The skinned human fitted to the body (body/human.py) as one mesh node at the scene's root,
+    skinned by the joint nodes; its bind pose is the rest pose (T-pose on these bones, standing on
+    the ground), so each inverse bind matrix is the translation by minus the joint's rest position.
+    Returns the meshes, the skins and the scene's root nodes."""
+    from ..body.human import LICENCE, human_mesh, vertex_normals
+    from ..body.skeleton import rest_positions
+    V, F, Jn, W = human_mesh(shape)
+    rest = rest_positions(torch.from_numpy(off)).numpy()
+    ibm = np.tile(np.eye(4, dtype=np.float32), (len(rest), 1, 1))
+    ibm[:, 3, :3] = -rest  # glTF is column-major: the translation is elements 12-14, this row-major row 3
+    materials[0] = {"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.80, 0.62, 0.52, 1.0],
+                                                             "metallicFactor": 0.0, "roughnessFactor": 0.7}}
+    prim = {"attributes": {"POSITION": B.add(V, _FLOAT, "VEC3", _ARRAY, True),
+                           "NORMAL": B.add(vertex_normals(V, F), _FLOAT, "VEC3", _ARRAY),
+                           "JOINTS_0": B.add(Jn, _UINT8, "VEC4", _ARRAY), "WEIGHTS_0": B.add(W, _FLOAT, "VEC4", _ARRAY)},
+            "indices": B.add(F.reshape(-1), _UINT16, "SCALAR", _ELEMENTS), "material": 0}
+    nodes.append({"name": "human", "mesh": 0, "skin": 0, "extras": {"licence": LICENCE}})
+    skins = [{"name": "skeleton", "joints": list(range(len(rest))), "skeleton": 0,
+              "inverseBindMatrices": B.add(ibm.reshape(len(rest), 16), _FLOAT, "MAT4")}]
+    return [{"name": "human", "primitives": [prim]}], skins, [0, len(nodes) - 1]
+
+
+def write_glb(path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = 30.0,
+              names: list[str] | None = None, body: str = "human") -> None:
+    """names: the joints' node names (default ours; io/skeletons.py); body: "human" (skinned) or
+    "capsules"."""
+    if body not in BODIES:
+        raise ValueError(f"unknown body {body!r}; bodies are {list(BODIES)}")
+    names = list(names or JOINT_NAMES)
+    u = unpack(states.double())
+    T = states.shape[0]
+    off = rest_offsets(shape, torch.float64).numpy()
+    local = torch.cat((u.root_rot[:, None], u.local_rot), 1)
+    q = rot.matrix_to_quat(local).numpy()  # (T, 22, w x y z)
+    q_xyzw = np.concatenate((q[..., 1:], q[..., :1]), -1).astype(np.float32)
+    B = _Builder()
+    materials = [{"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.45, 0.62, 0.85, 1.0],
+                                                           "metallicFactor": 0.0, "roughnessFactor": 0.6}}]
+    nodes = []
+    for j, name in enumerate(names):
+        node = {"name": name, "translation": (u.root_pos[0].tolist() if j == 0 else off[j].tolist()),
+                "rotation": q_xyzw[0, j].tolist(), "children": []}
+        nodes.append(node)
+    for j in range(1, len(JOINT_NAMES)):
+        nodes[PARENTS[j]]["children"].append(j)
+    extra: dict = {}
+    if body == "human":
+        meshes, skins, roots = _human(B, nodes, shape, off, materials)
+        extra["skins"] = skins
+    else:
+        meshes, roots = _capsules(B, nodes, names, off), [0]
     for nd in nodes:
         if "children" in nd and not nd["children"]:
             del nd["children"]
@@ -129,7 +171,7 @@ def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None
         channels.append({"sampler": len(samplers) - 1, "target": {"node": j, "path": "rotation"}})
     doc = {
         "asset": {"version": "2.0", "generator": "avatar-motor"},
-        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": nodes, "meshes": meshes, "materials": materials,
+        "scene": 0, "scenes": [{"nodes": roots}], "nodes": nodes, "meshes": meshes, "materials": materials, **extra,
         "animations": [{"name": "motion", "samplers": samplers, "channels": channels}],
         "buffers": [{"byteLength": len(B.bin)}], "bufferViews": B.views, "accessors": B.accessors,
     }
@@ -137,10 +179,12 @@ def write_glb(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None
     js += b" " * (-len(js) % 4)
     bn = bytes(B.bin) + b"\0" * (-len(B.bin) % 4)
     total = 12 + 8 + len(js) + 8 + len(bn)
-    with open(path, "wb") as f:
-        f.write(struct.pack("<4sII", b"glTF", 2, total))
-        f.write(struct.pack("<I4s", len(js), b"JSON") + js)
-        f.write(struct.pack("<I4s", len(bn), b"BIN\0") + bn)
+    data = (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(js), b"JSON") + js
+            + struct.pack("<I4s", len(bn), b"BIN\0") + bn)
+    if hasattr(path, "write"):  # a file object (the server answers from memory)
+        path.write(data)
+    else:
+        Path(path).write_bytes(data)
 
 
 def read_glb(path: str | Path) -> tuple[dict, bytes]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import hmac
+import io
 import ipaddress
 import json
 import logging
@@ -119,7 +120,7 @@ class Server:
         self.app = web.Application(middlewares=[self._guard])
         self.app.add_routes([
             web.get("/", self.index), web.get("/ws", self.websocket), web.get("/api/info", self.info),
-            web.get("/api/record", self.record), web.get("/api/events", self.events),
+            web.get("/api/record", self.record), web.get("/api/events", self.events), web.get("/api/human", self.human),
             web.static("/static", STATIC, show_index=False),
         ])
         self.app.on_startup.append(self._start_background)
@@ -215,6 +216,25 @@ class Server:
             body = path.read_bytes()
         return web.Response(body=body, content_type="application/octet-stream",
                             headers={"Content-Disposition": f'attachment; filename="avatar{i}_{seconds:g}s.{fmt}"'})
+
+    async def human(self, request):
+        """?avatar=ID: the skinned human fitted to that avatar's body (body/human.py) as a .glb of
+        its skeleton in its current pose, for the studio to drive from the stream; cached per body
+        shape (fitting takes ~0.1 s)."""
+        from ..io.gltf import write_glb
+        try:
+            i = int(request.query.get("avatar", "0"))
+            X = self.world.recording(i, 1.0 / FPS)
+            shape = self.world.crowd.shape(i)
+        except (ValueError, CommandError, KeyError) as e:
+            raise web.HTTPBadRequest(text=str(e)) from None
+
+        def glb() -> bytes:
+            buf = io.BytesIO()
+            write_glb(buf, X, shape)
+            return buf.getvalue()
+        body = await asyncio.get_running_loop().run_in_executor(None, glb)
+        return web.Response(body=body, content_type="model/gltf-binary")
 
     async def events(self, request):
         """The commands applied (the newest world.EVENTS_KEPT), as a script for `serve --headless
