@@ -66,26 +66,30 @@ _GROUPS = {  # which joints' offsets each proportion parameter lengthens
     2: ["spine1", "spine2", "spine3", "neck", "head"],
     3: ["left_elbow", "right_elbow", "left_wrist", "right_wrist"],
 }
+_WIDTHS = {4: ["left_collar", "right_collar", "left_shoulder", "right_shoulder"], 5: ["left_hip", "right_hip"]}
+# (SHAPE_DIM, 22, 3): 1 where parameter k scales that offset component. Stature scales every bone
+# (the standing height changes by 10 cm per unit); lengths whole offsets; widths their x
+_SCALES = torch.zeros(SHAPE_DIM, NUM_JOINTS, 3)
+_SCALES[0] = 1.0
+for _k, _names in _GROUPS.items():
+    _SCALES[_k, [JOINT_INDEX[n] for n in _names]] = 1.0
+for _k, _names in _WIDTHS.items():
+    _SCALES[_k, [JOINT_INDEX[n] for n in _names], 0] = 1.0
 
 
 def rest_offsets(shape: torch.Tensor | None = None, dtype=torch.float32) -> torch.Tensor:
-    """Bone offsets (..., 22, 3) for body-shape vectors (..., SHAPE_DIM); None -> average body."""
+    """Bone offsets (..., 22, 3) for body-shape vectors (..., SHAPE_DIM); None -> average body.
+    Each parameter k scales the offset components of _SCALES[k] by (1 + STEP_k x_k), stature
+    every component: one product over the parameters (runs for every segment the runtime makes)."""
     base = TEMPLATE_OFFSETS.to(dtype)
     if shape is None:
         return base.clone()
     shape = shape.to(dtype)
     if shape.shape[-1] != SHAPE_DIM:
         raise ValueError(f"body shape must have {SHAPE_DIM} components {SHAPE_NAMES}, got {shape.shape[-1]}")
-    scale = torch.ones(*shape.shape[:-1], NUM_JOINTS, 3, dtype=dtype)
-    for k, names in _GROUPS.items():
-        idx = [JOINT_INDEX[n] for n in names]
-        scale[..., idx, :] = scale[..., idx, :] * (1 + STEP[SHAPE_NAMES[k]] * shape[..., k, None, None])
-    for k, names in ((4, ["left_collar", "right_collar", "left_shoulder", "right_shoulder"]), (5, ["left_hip", "right_hip"])):
-        idx = [JOINT_INDEX[n] for n in names]
-        scale[..., idx, 0] = scale[..., idx, 0] * (1 + STEP[SHAPE_NAMES[k]] * shape[..., k, None])
-    off = base * scale
-    # stature: uniform scale so that standing height changes by 10 cm per unit
-    return off * (1 + STEP["stature"] * shape[..., 0, None, None])
+    steps = torch.tensor([STEP[n] for n in SHAPE_NAMES], dtype=dtype)
+    factors = 1 + (shape * steps)[..., :, None, None] * _SCALES.to(dtype)  # (..., SHAPE_DIM, 22, 3)
+    return base * factors.prod(-3)
 
 
 def pelvis_height(offsets: torch.Tensor) -> torch.Tensor:
