@@ -22,7 +22,7 @@ def test_clear_errors_for_missing_things(tmp_path, capsys):
     assert main(["generate", "--model", str(tmp_path / "nope"), "--out", str(tmp_path / "x.bvh")]) == 2
     assert "no such checkpoint folder" in capsys.readouterr().err
     assert main(["generate", "--out", str(tmp_path / "x.txt")]) == 2
-    assert "use a .bvh, .glb or .npz" in capsys.readouterr().err
+    assert "use a .bvh, .glb, .npz or .fbx" in capsys.readouterr().err
     assert main(["data", "import", str(tmp_path / "missing")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert main(["data", "list"]) == 0

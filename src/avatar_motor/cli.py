@@ -357,7 +357,7 @@ def _export_onnx(a) -> int:
 def _generate(a) -> int:
     import torch
 
-    from .io.export import MOTION_FORMATS, write_motion
+    from .io.export import FORMATS_TEXT, MOTION_FORMATS, write_motion
     from .io.skeletons import joint_names
     from .model.checkpoint import load_checkpoint
     from .runtime.crowd import IMPULSE_PRESETS, Crowd
@@ -371,7 +371,7 @@ def _generate(a) -> int:
         raise ValueError("--seconds must be in (0, 3600]")
     out = Path(a.out)
     if out.suffix.lower() not in MOTION_FORMATS:
-        raise ValueError(f"--out {out}: use a {', '.join(MOTION_FORMATS)} file name")
+        raise ValueError(f"--out {out}: use a {FORMATS_TEXT} file name")
     joint_names(a.skeleton)  # a misspelt convention is named before the motion is made
     labels = _timed_args(a.label, "--label", lambda v: None if v.lower() in ("none", "free") else v)
     personas = _timed_args(a.persona, "--persona", lambda v: None if v.strip().lower() == "none" else v)

@@ -35,6 +35,7 @@ def canonical_bvh(states: torch.Tensor, shape: torch.Tensor | None = None, fps: 
 
 
 MOTION_FORMATS = (".bvh", ".glb", ".npz", ".fbx")
+FORMATS_TEXT = ", ".join(MOTION_FORMATS[:-1]) + " or " + MOTION_FORMATS[-1]  # for error messages
 
 
 def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = FPS,
@@ -74,7 +75,7 @@ def write_motion(path: str | Path, states: torch.Tensor, shape: torch.Tensor | N
             raise ValueError(f"{path}: write glTF binary (.glb), which holds the body and its animation in one file")
         write_file(path, lambda tmp: write_glb(tmp, states, shape, fps, names))
     else:
-        raise ValueError(f"{path}: unknown motion format {suffix!r}; use {', '.join(MOTION_FORMATS)}")
+        raise ValueError(f"{path}: unknown motion format {suffix!r}; use {FORMATS_TEXT}")
     return path
 
 
