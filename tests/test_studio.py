@@ -53,6 +53,10 @@ def press(page, selector: str) -> None:
 def test_studio_in_chromium(tmp_path, artifacts):
     world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
     with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+        # drawn as the skinned human, fitted to its body by the server (/api/human) and posed from
+        # the stream; the figures below are read once it draws (loading it takes the page a moment)
+        page.wait_for_function("window.studio.humans().includes(0)", timeout=60000)
+        time.sleep(1.5)
         f0, j0 = page.evaluate("[window.studio.frame, window.studio.joints(0)]")
         time.sleep(1.0)
         f1, j1 = page.evaluate("[window.studio.frame, window.studio.joints(0)]")
@@ -61,8 +65,6 @@ def test_studio_in_chromium(tmp_path, artifacts):
         hud = page.evaluate("['fps', 'drawn', 'stalls'].map((k) => Number(document.getElementById(k).textContent))")
         assert hud[0] >= 25 and hud[1] > 0 and hud[2] >= 0, hud
         assert max(abs(a - b) for a, b in zip(j0, j1)) > 1e-3  # the avatar moves by itself
-        # drawn as the skinned human, fitted to its body by the server (/api/human) and posed from the stream
-        page.wait_for_function("window.studio.humans().includes(0)", timeout=60000)
         # a push through the page's own socket: the head is thrown backwards
         ack = page.evaluate("window.studio.send({type: 'push', avatar: 0, joint: 'head', velocity: [0, 0, -4]})")
         assert ack["ok"]
