@@ -1,13 +1,13 @@
 # Two entry points (see README): `make studio` runs the web studio, `make test` runs the tests.
 # Each installs what it needs: a virtualenv with pinned packages, the studio's npm build, and for
-# the browser test Debian's chromium.
+# the browser test Debian's chromium, for the engine and export tests Debian's headless Godot 3 and Blender.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-8)
 WEB_DIST := src/avatar_motor/serve/static/dist/studio.js
 
-.PHONY: studio test install web chromium clean models data wheel
+.PHONY: studio test install web chromium godot blender clean models data wheel
 
 install: $(STAMP)
 
@@ -26,10 +26,17 @@ $(WEB_DIST): web/package.json web/package-lock.json $(wildcard web/src/*.js)
 chromium:
 	@command -v chromium >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq chromium >/dev/null)
 
+godot:
+	@command -v godot3-server >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq godot3-server >/dev/null)
+
+# FBX export runs Blender; the tests also import glTF with it, whose importer needs numpy
+blender:
+	@command -v blender >/dev/null 2>&1 && dpkg -s python3-numpy >/dev/null 2>&1 || (apt-get update -qq && apt-get install -y -qq --no-install-recommends blender python3-numpy >/dev/null)
+
 studio: install web
 	$(BIN)/avatar-motor serve --open-browser
 
-test: install web chromium
+test: install web chromium godot blender
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 # dist/avatar_motor-*.whl: the package with the shipped models and the studio, so that
@@ -51,7 +58,7 @@ clean:
 # shipped folder keeps its card.md: bring its figures up to date from runs/evals/.
 SHARED ?= ../shared/data/bandai-namco
 PYBULLET ?= pybullet==3.2.7
-FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/persona runs/persona-2
+FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/base-deepmimic-3 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/persona runs/persona-2
 AM := $(BIN)/avatar-motor
 
 data: install
@@ -67,7 +74,8 @@ models: data
 	$(AM) train --config configs/base-continue.json
 	$(AM) train --config configs/base-deepmimic.json
 	$(AM) train --config configs/base-deepmimic-2.json
-	$(AM) ship runs/base-deepmimic-2/checkpoint models/primal-bandai
+	$(AM) train --config configs/base-deepmimic-3.json
+	$(AM) ship runs/base-deepmimic-3/checkpoint models/primal-bandai
 	$(AM) distill --config configs/emdm.json
 	$(AM) ship runs/emdm/checkpoint models/primal-bandai-emdm --steps 1
 	$(AM) adapt --config configs/actions.json
