@@ -151,7 +151,13 @@ class HumanView {
   sync(bodies) {
     const want = this.enabled ? [...bodies.keys()].sort((x, y) => x - y).slice(0, HUMANS) : [];
     for (const id of [...this.humans.keys()]) {
-      if (!want.includes(id)) { scene.remove(this.humans.get(id).root); this.humans.delete(id); }
+      if (!want.includes(id)) {  // removed (or beyond HUMANS): its GPU buffers go with it
+        const h = this.humans.get(id);
+        scene.remove(h.root);
+        h.mesh.geometry.dispose();
+        h.mesh.material.dispose();
+        this.humans.delete(id);
+      }
     }
     for (const id of want) {
       if (this.humans.has(id) || this.loading.has(id) || !JOINTS.length) continue;
