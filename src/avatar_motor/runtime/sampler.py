@@ -98,8 +98,12 @@ class Sampler:
         self.teacher = None
         if self.kind != "ddpm" and cfg.impulse_teacher > 0:
             base = _teacher(motor)
-            if base is not None:
+            # the teacher's rows are encoded and decoded with this model's normalisation, which
+            # distillation keeps from its base
+            if base is not None and torch.equal(base.norm.mean, motor.norm.mean) and torch.equal(base.norm.std, motor.norm.std):
                 self.teacher = onnx_denoiser(base.net) if cfg.backend == "onnxruntime" else base.net
+            elif base is not None:
+                log.warning("impulse presets run on %s itself: its base normalises states otherwise", motor.name)
 
     def sample(self, batch: SegmentBatch, x0c: torch.Tensor, tf: Transform, cancelled=None) -> torch.Tensor:
         """Segments (B, N, 267), float32, in the canonical frames whose world transforms are tf, from
