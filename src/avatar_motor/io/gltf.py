@@ -19,7 +19,14 @@ from ..body.skeleton import JOINT_NAMES, PARENTS, rest_offsets
 from ..body.motion_state import unpack
 
 _FLOAT, _UINT16, _UINT8 = 5126, 5123, 5121
-BODIES = ("human", "capsules")
+# each body's one material: skin tones for the human, the studio's blue for the mannequin
+_MATERIALS = {
+    "human": {"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.80, 0.62, 0.52, 1.0], "metallicFactor": 0.0,
+                                                       "roughnessFactor": 0.7}},
+    "capsules": {"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.45, 0.62, 0.85, 1.0], "metallicFactor": 0.0,
+                                                          "roughnessFactor": 0.6}},
+}
+BODIES = tuple(_MATERIALS)
 _ARRAY, _ELEMENTS = 34962, 34963
 
 
@@ -106,7 +113,7 @@ def _capsules(B: _Builder, nodes: list, names: list[str], off: np.ndarray) -> li
     return meshes
 
 
-def _human(B: _Builder, nodes: list, shape, off: np.ndarray, materials: list) -> tuple[list, list, list]:
+def _human(B: _Builder, nodes: list, shape, off: np.ndarray) -> tuple[list, list, list]:
     """The skinned human fitted to the body (body/human.py) as one mesh node at the scene's root,
     skinned by the joint nodes; its bind pose is the rest pose (T-pose on these bones, standing on
     the ground), so each inverse bind matrix is the translation by minus the joint's rest position.
@@ -117,8 +124,6 @@ def _human(B: _Builder, nodes: list, shape, off: np.ndarray, materials: list) ->
     rest = rest_positions(torch.from_numpy(off)).numpy()
     ibm = np.tile(np.eye(4, dtype=np.float32), (len(rest), 1, 1))
     ibm[:, 3, :3] = -rest  # glTF is column-major: the translation is elements 12-14, this row-major row 3
-    materials[0] = {"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.80, 0.62, 0.52, 1.0],
-                                                             "metallicFactor": 0.0, "roughnessFactor": 0.7}}
     prim = {"attributes": {"POSITION": B.add(V, _FLOAT, "VEC3", _ARRAY, True),
                            "NORMAL": B.add(vertex_normals(V, F), _FLOAT, "VEC3", _ARRAY),
                            "JOINTS_0": B.add(Jn, _UINT8, "VEC4", _ARRAY), "WEIGHTS_0": B.add(W, _FLOAT, "VEC4", _ARRAY)},
@@ -143,8 +148,7 @@ def write_glb(path, states: torch.Tensor, shape: torch.Tensor | None = None, fps
     q = rot.matrix_to_quat(local).numpy()  # (T, 22, w x y z)
     q_xyzw = np.concatenate((q[..., 1:], q[..., :1]), -1).astype(np.float32)
     B = _Builder()
-    materials = [{"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.45, 0.62, 0.85, 1.0],
-                                                           "metallicFactor": 0.0, "roughnessFactor": 0.6}}]
+    materials = [_MATERIALS[body]]
     nodes = []
     for j, name in enumerate(names):
         node = {"name": name, "translation": (u.root_pos[0].tolist() if j == 0 else off[j].tolist()),
@@ -154,7 +158,7 @@ def write_glb(path, states: torch.Tensor, shape: torch.Tensor | None = None, fps
         nodes[PARENTS[j]]["children"].append(j)
     extra: dict = {}
     if body == "human":
-        meshes, skins, roots = _human(B, nodes, shape, off, materials)
+        meshes, skins, roots = _human(B, nodes, shape, off)
         extra["skins"] = skins
     else:
         meshes, roots = _capsules(B, nodes, names, off), [0]
