@@ -96,6 +96,28 @@ def test_stream_rate_acks_and_second_viewer(server):
         assert set(fb["avatars"]) == {0}
 
 
+def test_every_client_is_told_the_environment(server):
+    """An obstacle or a tilt from one client reaches every client as an `environment` message and
+    is in the welcome of a client that connects later; a bad index is an error naming it."""
+    with Client(server.url) as a, Client(server.url) as b:
+        assert a.welcome["environment"]["obstacles"] == [] and a.welcome["environment"]["ground"]["tilt"] == [0.0, 0.0]
+        r = a.command({"type": "obstacle", "centre": [5.0, 5.0], "size": [1.0, 0.3, 0.2], "yaw": 45.0})
+        assert r["ok"] and r["obstacle"] == 0, r
+        m = b._wait_message(lambda m: m.get("type") == "environment" and m["obstacles"])
+        assert m["obstacles"] == [{"centre": [5.0, 5.0], "size": [1.0, 0.3, 0.2], "yaw": 45.0}]
+        assert a.command({"type": "ground", "tilt": [5.0, 0.0], "pivot": [5.0, 5.0]})["ok"]
+        with Client(server.url) as c:
+            assert c.welcome["environment"]["ground"] == {"tilt": [5.0, 0.0], "pivot": [5.0, 5.0]}
+            assert len(c.welcome["environment"]["obstacles"]) == 1
+        r = a.command({"type": "remove_obstacle", "obstacle": 4})
+        assert r["type"] == "error" and "no obstacle 4" in r["error"]
+        r = a.command({"type": "ground", "tilt": [50.0, 0.0]})
+        assert r["type"] == "error" and "tilt" in r["error"]
+        assert a.command({"type": "remove_obstacle"})["ok"] and a.command({"type": "ground", "tilt": [0.0, 0.0]})["ok"]
+        m = b._wait_message(lambda m: m.get("type") == "environment" and not m["obstacles"] and m["ground"]["tilt"] == [0.0, 0.0])
+        assert m["obstacles"] == []
+
+
 def test_fuzzed_messages_leave_the_server_alive_at_30fps(server):
     rng = random.Random(0)
     samples = ['{"type": "goal", "avatar": 0, "velocity": [1e309, 0]}', '{"type": "push"}', "[]", "null", "{",
@@ -174,10 +196,13 @@ def test_headless_replay_is_reproducible(tmp_path):
 
 
 def test_a_physics_session_replays_bit_for_bit(tmp_path):
-    """Physics mode through the World's commands (a force, a spring held then released, a ball):
-    the event log replayed headless gives the same frames, bit for bit, and the same balls."""
+    """Physics mode through the World's commands (a force, a spring held then released, a ball, an
+    obstacle and a tilted ground): the event log replayed headless gives the same frames, bit for
+    bit, and the same balls and environment."""
     motor = shipped_or_tiny(tmp_path)
     script = [{"frame": 5, "cmd": {"type": "physics", "avatar": 0, "on": True}},
+              {"frame": 8, "cmd": {"type": "obstacle", "centre": [0.0, 0.6], "size": [2.0, 0.2, 0.15], "yaw": 10.0}},
+              {"frame": 9, "cmd": {"type": "ground", "tilt": [6.0, -3.0], "pivot": [0.0, 0.0]}},
               {"frame": 12, "cmd": {"type": "force", "avatar": 0, "joint": "pelvis", "force": [300.0, 0.0, 0.0], "seconds": 0.2}},
               {"frame": 20, "cmd": {"type": "spring", "avatar": 0, "joint": "left_wrist", "target": [0.5, 1.5, 0.5]}},
               {"frame": 30, "cmd": {"type": "spring", "avatar": 0, "joint": "left_wrist", "target": None}},
@@ -190,8 +215,10 @@ def test_a_physics_session_replays_bit_for_bit(tmp_path):
         w.run_offline(60, script)
         runs.append(w.recording(0))
         balls.append(w.balls_payload())
-        assert [e["frame"] for e in w.events] == [5, 12, 20, 30, 34]
+        assert [e["frame"] for e in w.events] == [5, 8, 9, 12, 20, 30, 34]
     assert (runs[0] - runs[1]).abs().max() == 0 and balls[0] == balls[1]
+    env = w.environment_payload()
+    assert env["ground"]["tilt"] == [6.0, -3.0] and len(env["obstacles"]) == 1
     # the replay of the first world's own event log (as /api/events serves it) too
     r = World(motor, seed=2)
     r.apply({"type": "spawn"}, log=False)
@@ -473,7 +500,8 @@ def _fuzz_variants(kind: str, rng: random.Random) -> list[dict]:
     required, optional = P._FIELDS[kind]
     good = {"avatar": 0, "preset": "left_kick", "joint": "head", "velocity": [0.0, 0.0, 1.0], "label": "wave",
             "seed": 1, "on": True, "force": [0.0, 0.0, 100.0], "seconds": 0.5, "target": [0.0, 1.0, 1.0],
-            "position": [0.0, 1.0, 3.0], "description": "a weary old man"}
+            "position": [0.0, 1.0, 3.0], "description": "a weary old man", "tilt": [5.0, 0.0], "centre": [0.0, 2.0],
+            "size": [1.0, 0.2, 0.2]}
     base = {"type": kind, **{k: good[k] for k in required}}
     bad_values = [None, True, "x" * 300, -1, 1e309, [1e6, 1e6, 1e6], {"a": 1}, [None], ["spawn"], 2**40]
     out = [{**{k: v for k, v in base.items() if k != field}} for field in required]

@@ -309,6 +309,59 @@ def test_physics_in_the_studio(tmp_path, artifacts):
 
 
 @needs_chromium
+def test_obstacles_and_a_tilted_ground_in_the_studio(tmp_path, artifacts):
+    """The environment from the page: "place obstacle" and a click on the floor put a bar across
+    the selected avatar's way (physics on for it), every client draws it; the avatar walked into it
+    lifts its feet over it; the tilt slider tilts the ground under it, and the page draws that."""
+    from avatar_motor.body.motion_state import joints_of
+    world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+        px, _, pz = page.evaluate("window.studio.pelvis(0)")
+        press(page, "#obstacle")
+        page.fill("#obstacle-height", "0.2")
+        x, y = page.evaluate(f"window.studio.screenOfPoint({px}, 0, {pz + 1.2})")
+        page.mouse.click(x, y)
+        deadline = time.time() + 10
+        while time.time() < deadline and not world.crowd.environment.boxes:
+            time.sleep(0.05)
+        (box,) = world.crowd.environment.boxes
+        assert world.crowd.avatars[0].physics and abs(box.size[1] - 0.2) < 1e-9
+        assert abs(box.centre[1] - (pz + 1.2)) < 0.3 and abs(box.centre[0] - px) < 0.3  # where the floor was clicked
+        page.wait_for_function("window.studio.environment && window.studio.environment.obstacles.length === 1", timeout=10000)
+        # walk it over the bar, watching the feet where they are above it
+        R, c, half = box.frame()
+        world.apply({"type": "goal", "avatar": 0, "velocity": [0.0, 1.0]})
+        lowest_over, end = 9.0, time.time() + 8
+        while time.time() < end:
+            with world.lock:
+                J = joints_of(world.crowd.state(0).double())
+            q = (J - c) @ R
+            over = (q[:, [0, 2]].abs() < half[[0, 2]]).all(-1)  # joints above the bar's footprint
+            feet = [j for j in (7, 8, 10, 11) if bool(over[j])]
+            if feet:
+                lowest_over = min(lowest_over, float(J[feet, 1].min()))
+            time.sleep(0.01)
+        assert float(J[0, 2]) > c[2] + 0.3, "the avatar did not get past the bar"
+        assert lowest_over > 0.2 - 0.08, f"a foot went {0.2 - lowest_over:.2f} m into the bar"
+        page.screenshot(path=str(artifacts / "studio-obstacle.png"))
+        world.apply({"type": "goal", "avatar": 0, "velocity": None})
+        page.eval_on_selector("#tilt", "t => { t.value = '10'; t.dispatchEvent(new Event('change')); }")
+        deadline = time.time() + 10
+        while time.time() < deadline and world.crowd.environment.ground.flat:
+            time.sleep(0.05)
+        assert world.crowd.environment.ground.tilt == (10.0, 0.0)
+        page.wait_for_function("window.studio.environment.ground.tilt[0] === 10", timeout=10000)
+        time.sleep(2.0)
+        g = world.crowd.environment.ground
+        with world.lock:
+            J = joints_of(world.crowd.state(0).double())
+        assert float(g.height(J).min()) > -0.02 and float(g.height(J[:1])) > 0.6  # standing on the slope
+        page.screenshot(path=str(artifacts / "studio-tilt.png"))
+        press(page, "#clear-obstacles")
+        page.wait_for_function("window.studio.environment.obstacles.length === 0", timeout=10000)
+
+
+@needs_chromium
 def test_a_crowd_of_personas_in_the_studio(tmp_path, artifacts):
     from .conftest_models import persona_or_tiny
     world = World(persona_or_tiny(tmp_path), RuntimeConfig(), seed=0)

@@ -256,6 +256,24 @@ def _parse_ball(text: str):
     return _floats(parts[0], 3, f"--ball {text!r} position"), _floats(parts[1], 3, f"--ball {text!r} velocity"), mass
 
 
+def _parse_obstacle(text: str):
+    """X,Z:SX,SY,SZ[:YAW] (world m, m, degrees) -> (centre, size, yaw)."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"--obstacle {text!r}: use X,Z:SX,SY,SZ[:YAW], e.g. 0,1.5:2,0.2,0.15")
+    yaw = _floats(parts[2], 1, f"--obstacle {text!r} yaw")[0] if len(parts) == 3 else 0.0
+    return _floats(parts[0], 2, f"--obstacle {text!r} centre"), _floats(parts[1], 3, f"--obstacle {text!r} size"), yaw
+
+
+def _parse_tilt(text: str):
+    """AX,AZ[:PX,PZ] (degrees about x and z, pivot m) -> (tilt, pivot)."""
+    parts = text.split(":")
+    if len(parts) not in (1, 2):
+        raise ValueError(f"--ground {text!r}: use AX,AZ[:PX,PZ], e.g. 10,0 or 10,0:0,2")
+    pivot = _floats(parts[1], 2, f"--ground {text!r} pivot") if len(parts) == 2 else [0.0, 0.0]
+    return _floats(parts[0], 2, f"--ground {text!r} tilt"), pivot
+
+
 def _parse_goal(text: str):
     import math
 
@@ -378,8 +396,10 @@ def _generate(a) -> int:
     targets = _timed_args(a.target, "--target", _parse_xz)
     forces = _timed_args(a.force, "--force", _parse_force)
     balls = _timed_args(a.ball, "--ball", _parse_ball)
-    if (forces or balls) and not a.physics:
-        raise ValueError("--force and --ball act on a simulated body: add --physics")
+    obstacles = [_parse_obstacle(t) for t in a.obstacle or []]
+    ground = _parse_tilt(a.ground) if a.ground else None
+    if (forces or balls or obstacles or ground) and not a.physics:
+        raise ValueError("--force, --ball, --obstacle and --ground act on a simulated body: add --physics")
     motor = load_checkpoint(a.model)
     init, shape = load_init(a.init) if a.init else (None, None)
     if a.shape:
@@ -388,6 +408,10 @@ def _generate(a) -> int:
         if init is not None:
             raise ValueError("--shape and --init both set the body: the initial frame's body is its file's")
     crowd = Crowd(motor, _runtime_config(a), a.seed, _load_adaptors(a, motor), _range_of_motion())
+    for centre, size, yaw in obstacles:
+        crowd.add_obstacle(centre, size, yaw)
+    if ground:
+        crowd.set_ground(*ground)
     i = crowd.spawn(init, shape)
     crowd.set_physics(i, a.physics)
     frames = [crowd.state(i)]
@@ -534,14 +558,20 @@ def _eval_impulses(a) -> int:
 
 
 def _eval_physics(a) -> int:
-    from .eval.physics import format_physics, physics_eval, save_json
+    from .eval.physics import environment_eval, format_environment, format_physics, physics_eval, save_json
     from .model.checkpoint import load_checkpoint
 
-    r = physics_eval(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seed, _runtime_config(a),
-                     _range_of_motion(), a.png, progress=lambda m: print(m, flush=True) if a.verbose else None)
-    print(format_physics(r))
-    if a.png:
-        print(f"plot: {a.png}")
+    motor, rom = load_checkpoint(a.model), _range_of_motion()
+    progress = (lambda m: print(m, flush=True)) if a.verbose else (lambda m: None)
+    r = {}
+    if a.part in ("all", "perturbations"):
+        r = physics_eval(motor, _optional_caches(a.data), a.n, a.seed, _runtime_config(a), rom, a.png, progress=progress)
+        print(format_physics(r))
+        if a.png:
+            print(f"plot: {a.png}")
+    if a.part in ("all", "environment"):
+        r["environment"] = environment_eval(motor, a.n, a.seed, _runtime_config(a), rom, progress=progress)
+        print(format_environment(r["environment"]))
     if a.json:
         save_json(r, a.json)
     return 0
@@ -936,6 +966,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--physics", action="store_true", help="physics mode (DROP): the body is simulated, the model its control")
     g.add_argument("--force", action="append", help="JOINT:FX,FY,FZ:SECONDS[@SECONDS] world newtons held on a joint (physics; repeatable)")
     g.add_argument("--ball", action="append", help="X,Y,Z:VX,VY,VZ[:MASS][@SECONDS] a ball thrown (physics; repeatable)")
+    g.add_argument("--obstacle", action="append", help="X,Z:SX,SY,SZ[:YAW] a static box on the floor, e.g. a bar "
+                   "0,1.5:2,0.2,0.15 (physics; repeatable)")
+    g.add_argument("--ground", help="AX,AZ[:PX,PZ] the ground tilted by AX and AZ degrees about x and z, about the "
+                   "pivot (PX, PZ) (physics)")
     _add_runtime_args(g)
     g.add_argument("--out", required=True, help="a .bvh, .glb, .npz or .fbx file (FBX through Blender: apt-get install blender)")
     _add_skeleton_arg(g)
@@ -1015,6 +1049,9 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--png", help="energy curves and the response to the push series")
     ep.add_argument("--json", help="write the figures (and the energy traces) as JSON")
     ep.add_argument("--verbose", action="store_true", help="print each condition as it is measured")
+    ep.add_argument("--part", choices=("all", "perturbations", "environment"), default="all",
+                    help="perturbations: the push and ball series, ablations and energies; environment: direction "
+                    "following, a bar across the path, a tilted ground")
     ep.set_defaults(func=_eval_physics)
     es = ev.add_parser("samplers", help="DDPM 50/8, EMDM and consistency 4/2/1: quality and speed in one run")
     es.add_argument("--base", default=str(BASE_MODEL), help="the DDPM base")

@@ -242,6 +242,7 @@ function connect() {
       buildPresets(msg.presets);
       buildLabels(msg.adaptors);
       $("persona-panel").style.display = msg.persona ? "" : "none";
+      if (msg.environment) drawEnvironment(msg.environment);
       $("warn").textContent = "";
     } else if (msg.type === "stats") {
       // stalls: ticks at which generation had no frame ready (the avatar held its pose)
@@ -250,7 +251,10 @@ function connect() {
       state.stalls = msg.stalls;
       $("gen").textContent = msg.gen_ms;
       $("stalls").textContent = msg.stalls;
+      if (msg.environment) drawEnvironment(msg.environment);
       warn();
+    } else if (msg.type === "environment") {
+      drawEnvironment(msg);
     } else if (msg.type === "balls") {
       state.balls = msg.balls;
       drawBalls(msg.balls);
@@ -455,6 +459,64 @@ state.throwBall = async () => {
     velocity: v.toArray().map((x) => +x.toFixed(3)), mass: Number($("ball-mass").value) || 2 });
 };
 $("throw").onclick = () => state.throwBall();
+
+// ---------------------------------------------------------------- physics: the ground and obstacles
+// drawn as the server describes them (welcome, `environment`, each stats message)
+const OBSTACLE_MAT = new THREE.MeshStandardMaterial({ color: 0x9a6a44, roughness: 0.8 });
+const obstacleMeshes = [];
+let environmentKey = "";
+function drawEnvironment(env) {
+  const key = JSON.stringify([env.ground, env.obstacles]);
+  if (key === environmentKey) return;
+  environmentKey = key;
+  state.environment = { ground: env.ground, obstacles: env.obstacles };
+  const [ax, az] = env.ground.tilt.map((d) => (d * Math.PI) / 180);
+  const [px, pz] = env.ground.pivot;
+  // the floor turned by R_z(az) R_x(ax) about the pivot (the plane mesh lies in its own XY plane)
+  const turn = new THREE.Matrix4().makeRotationZ(az).multiply(new THREE.Matrix4().makeRotationX(ax));
+  const about = new THREE.Matrix4().makeTranslation(px, 0, pz).multiply(turn).multiply(new THREE.Matrix4().makeTranslation(-px, 0, -pz));
+  ground.matrixAutoUpdate = false;
+  ground.matrix.copy(about.clone().multiply(new THREE.Matrix4().makeRotationX(-Math.PI / 2)));
+  grid.matrixAutoUpdate = false;
+  grid.matrix.copy(about.clone().multiply(new THREE.Matrix4().makeTranslation(0, 0.002, 0)));
+  ground.matrixWorldNeedsUpdate = grid.matrixWorldNeedsUpdate = true;
+  $("tilt").value = String(Math.round(env.ground.tilt[0]));
+  $("tilt-value").textContent = String(Math.round(env.ground.tilt[0]));
+  while (obstacleMeshes.length < env.obstacles.length) {
+    const m = new THREE.Mesh(new THREE.BoxGeometry(1, 1, 1), OBSTACLE_MAT);
+    m.castShadow = true;
+    m.receiveShadow = true;
+    scene.add(m);
+    obstacleMeshes.push(m);
+  }
+  obstacleMeshes.forEach((m, k) => {
+    const o = env.obstacles[k];
+    m.visible = !!o;
+    if (!o) return;
+    m.scale.set(o.size[0], o.size[1], o.size[2]);
+    m.position.set(o.centre[0], o.size[1] / 2, o.centre[1]);
+    m.rotation.set(0, (o.yaw * Math.PI) / 180, 0);
+  });
+}
+state.drawEnvironment = drawEnvironment;
+let placingObstacle = false;
+$("obstacle").onclick = () => { placingObstacle = !placingObstacle; $("obstacle").classList.toggle("on", placingObstacle); };
+$("clear-obstacles").onclick = () => send({ type: "remove_obstacle" });
+// a bar 2 m wide and 15 cm deep across the way from the selected avatar to the clicked point;
+// the avatar is put in physics mode, since only a simulated body meets it
+state.placeObstacle = async (x, z) => {
+  const p = state.pelvis() || [0, 0, 0];
+  const yaw = Math.atan2(x - p[0], z - p[2]) * 180 / Math.PI;  // the bar's depth (its Z) along the way
+  const h = Math.max(0.02, Math.min(3, Number($("obstacle-height").value) || 0.2));
+  if (!state.physics.has(state.selected)) { await $("physics").onclick(); }
+  return send({ type: "obstacle", centre: [+x.toFixed(3), +z.toFixed(3)], size: [2, +h.toFixed(3), 0.15], yaw: +yaw.toFixed(1) });
+};
+$("tilt").oninput = () => { $("tilt-value").textContent = $("tilt").value; };
+$("tilt").onchange = async () => {
+  const p = state.pelvis() || [0, 0, 0];
+  if (!state.physics.has(state.selected)) { await $("physics").onclick(); }
+  send({ type: "ground", tilt: [Number($("tilt").value), 0], pivot: [+p[0].toFixed(3), +p[2].toFixed(3)] });
+};
 const download = (fmt) => {
   const s = Math.max(1, Math.min(60, Number($("seconds").value) || 10));
   location.href = `/api/record?avatar=${state.selected}&seconds=${s}&format=${fmt}${token ? "&token=" + token : ""}`;
@@ -525,6 +587,13 @@ function onPlane(y) {
 renderer.domElement.addEventListener("pointerdown", (ev) => {
   if (ev.button !== 0) return;
   pick(ev);
+  if (placingObstacle) {
+    const hit = onPlane(0);
+    if (hit) state.placeObstacle(hit.x, hit.z);
+    placingObstacle = false;
+    $("obstacle").classList.remove("on");
+    return;
+  }
   if (placingMagnet) {
     const hit = onPlane(0);
     if (hit) {

@@ -11,7 +11,10 @@ perturbed, and watched for 5 s more:
 - the root-wrench metric of real held-out clips, the range real motion shows (DROP Fig. 7);
 - energy curves of each term over a pushed run and a hit (DROP Fig. 4);
 - the ablations of DROP §8: no prior (kinematic weight 0), no contact, no range of motion; and
-  with the soft correction, which the shipped configuration leaves off (PhysicsConfig.correction).
+  with the soft correction, which the shipped configuration leaves off (PhysicsConfig.correction);
+- the environment (DROP §8.2), from standing bodies: a goal velocity followed with and without
+  the centre-of-mass velocity energy (Eq. 16); a bar across the walked path, of rising height
+  (does the body step over it, stumble, fall); a ground tilted under the standing body.
 """
 from __future__ import annotations
 
@@ -25,8 +28,10 @@ import torch
 from ..body.motion_state import FPS, joints_of, unpack
 from ..model.checkpoint import Motor
 from ..physics import limits, wrench
-from ..physics.solver import MASS_SHARE, PhysicsConfig
-from ..runtime.crowd import RuntimeConfig
+from ..body.skeleton import SHAPE_DIM
+from ..physics.environment import Box, Environment, Ground
+from ..physics.solver import COLLISION_RADIUS, MASS_SHARE, PhysicsConfig
+from ..runtime.crowd import Crowd, RuntimeConfig, standing_state
 from . import metrics as M
 from .control import initial_states
 from .realism import RealData, rollout
@@ -39,6 +44,11 @@ FALLEN, UP = 0.45, 0.7  # pelvis heights (m): below, the body is down; above at 
 THROW_FROM = 1.5  # m from the chest, horizontally
 CHEST = 9  # spine3
 CORRECTION = 1e-5  # the ablation with DROP's soft correction (off in the shipped config: PhysicsConfig)
+GOAL_SPEED = 1.2  # m/s: the walk of the environment rows
+BARS = (0.1, 0.2, 0.3, 0.45)  # m: heights of the bar across the path (15 cm deep), 1.5 m ahead
+BAR_AHEAD = 1.5
+TILTS = (5.0, 10.0, 20.0)  # degrees, about the world X axis under the bodies
+SPACING = 3.0  # m between the bodies of the environment rows (they do not meet each other)
 
 
 def _direction(g: torch.Generator) -> torch.Tensor:
@@ -199,6 +209,86 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
     if png:
         plot(out, png)
     return out
+
+
+def _standing_run(motor: Motor, n: int, seconds: float, cfg: RuntimeConfig, seed: int, rom, env: Environment,
+                  goal: tuple | None) -> torch.Tensor:
+    """n average bodies standing in a row along X (SPACING apart, facing +Z) in physics mode in the
+    world `env`, given a goal velocity after BEFORE s; (n, T, 22, 3) joints of the exported body."""
+    crowd = Crowd(motor, cfg, seed, range_of_motion=rom)
+    crowd.set_environment(env)
+    ids = [crowd.spawn(standing_state(None, (SPACING * k, 0.0)), torch.zeros(SHAPE_DIM)) for k in range(n)]
+    for i in ids:
+        crowd.set_physics(i, True)
+    frames = []
+    for f in range(int(seconds * FPS)):
+        if f == int(BEFORE * FPS) and goal is not None:
+            for i in ids:
+                crowd.set_goal(i, goal)
+        shown = crowd.next_frames()
+        frames.append(torch.stack([shown[i] for i in ids]))
+    return joints_of(torch.stack(frames, 1).double())
+
+
+def _up_figures(pel_y: torch.Tensor) -> dict:
+    fell = (pel_y < FALLEN).any(1)
+    got_up = fell & (pel_y[:, -int(0.5 * FPS):] > UP).all(1)
+    return {"stayed_up": 1.0 - float(fell.float().mean()), "fell_and_got_up": float(got_up.float().mean()),
+            "stumbled": float((pel_y < UP).any(1).float().mean())}
+
+
+def environment_eval(motor: Motor, n: int = 16, seed: int = 0, cfg: RuntimeConfig | None = None, rom=None,
+                     progress=print) -> dict:
+    """The environment rows (module docstring): each a row of figures."""
+    cfg = cfg or RuntimeConfig()
+    seconds = BEFORE + AFTER
+    out = {"n": n, "goal": [], "bars": [], "tilts": []}
+    settle = int((BEFORE + 2.0) * FPS)  # the walk measured after 2 s of it
+    for name, w in (("without E_com", 0.0), ("with E_com", cfg.physics.com_velocity)):
+        c = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, com_velocity=w))
+        J = _standing_run(motor, n, seconds, c, seed, rom, Environment(), (0.0, GOAL_SPEED))
+        v = (J[:, settle + 1:, 0] - J[:, settle:-1, 0]) * FPS  # (n, T, 3) pelvis velocity
+        speed = v[..., 2].mean(1)
+        out["goal"].append({"condition": f"goal {GOAL_SPEED:g} m/s, {name}", "weight": w,
+                            "speed_error": float((speed - GOAL_SPEED).abs().mean()),
+                            "sideways": float(v[..., 0].mean(1).abs().mean()), **_up_figures(J[..., 0, 1])})
+        progress(f"{out['goal'][-1]}")
+    for h in BARS:
+        boxes = tuple(Box((SPACING * k, BAR_AHEAD), (2.0, h, 0.15)) for k in range(n))
+        J = _standing_run(motor, n, seconds, cfg, seed, rom, Environment(boxes=boxes), (0.0, GOAL_SPEED))
+        depth = torch.zeros(())
+        for k, b in enumerate(boxes):
+            R, c, half = b.frame(J.dtype)
+            q = (J[k] - c) @ R
+            depth = torch.maximum(depth, ((half + COLLISION_RADIUS[:, None]) - q.abs()).amin(-1).max())
+        crossed = J[:, -1, 0, 2] > BAR_AHEAD + 0.5
+        out["bars"].append({"condition": f"bar {100 * h:g} cm high", "height": h, "crossed": float(crossed.float().mean()),
+                            "penetration_cm": 100 * max(0.0, float(depth)), **_up_figures(J[..., 0, 1])})
+        progress(f"{out['bars'][-1]}")
+    for tilt in TILTS:
+        g = Ground((tilt, 0.0))
+        J = _standing_run(motor, n, seconds, cfg, seed, rom, Environment(g), None)
+        above = g.height(J)  # joint centres above the plane
+        drift = J[:, -1, 0] - J[:, int(BEFORE * FPS), 0]
+        out["tilts"].append({"condition": f"ground tilted {tilt:g} deg", "tilt": tilt,
+                             "penetration_cm": 100 * max(0.0, -float(above.min())),
+                             "downhill_m": float(drift[:, 2].mean()), **_up_figures(J[..., 0, 1] - g.height_below(J[..., 0, [0, 2]]))})
+        progress(f"{out['tilts'][-1]}")
+    return out
+
+
+def format_environment(r: dict) -> str:
+    lines = [f"environment (DROP 8.2): {r['n']} standing average bodies in physics mode, {AFTER:g} s after {BEFORE:g} s",
+             f"{'direction following':30s} {'speed err':>9s} {'sideways':>8s} {'up':>5s} {'stumbled':>8s}"]
+    lines += [f"{x['condition']:30s} {x['speed_error']:9.2f} {x['sideways']:8.2f} {x['stayed_up']:5.2f} {x['stumbled']:8.2f}"
+              for x in r["goal"]]
+    lines.append(f"{'bar across the path':30s} {'crossed':>9s} {'pen. cm':>8s} {'up':>5s} {'stumbled':>8s} {'got up':>6s}")
+    lines += [f"{x['condition']:30s} {x['crossed']:9.2f} {x['penetration_cm']:8.1f} {x['stayed_up']:5.2f} "
+              f"{x['stumbled']:8.2f} {x['fell_and_got_up']:6.2f}" for x in r["bars"]]
+    lines.append(f"{'tilted ground, standing':30s} {'downhill':>9s} {'pen. cm':>8s} {'up':>5s} {'stumbled':>8s}")
+    lines += [f"{x['condition']:30s} {x['downhill_m']:9.2f} {x['penetration_cm']:8.1f} {x['stayed_up']:5.2f} "
+              f"{x['stumbled']:8.2f}" for x in r["tilts"]]
+    return "\n".join(lines)
 
 
 def format_physics(r: dict) -> str:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
+from .environment import FLAT, Environment, Ground, lift_above
 from .solver import COLLISION_RADIUS, H, Bodies, Candidates, PhysicsConfig, pose_from_particles, step
 from .wrench import correct
 
@@ -58,7 +59,8 @@ class Spring:
     damping: float = 40.0  # N s/m
 
 
-def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Ball, g: float) -> tuple[torch.Tensor, Ball, bool]:
+def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Ball, g: float,
+               ground: Ground = Ground()) -> tuple[torch.Tensor, Ball, bool]:
     """One frame of a ball against one body: joints x (22, 3), velocities v (22, 3), masses (22,).
     Returns the force (22, 3) the body takes over the frame, the ball a frame later, and whether
     it hit."""
@@ -91,18 +93,20 @@ def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Bal
     else:
         p = p + H * u
     u = u - torch.tensor([0.0, g * H, 0.0], dtype=x.dtype)
-    if float(p[1]) < ball.radius:  # the ground
-        p[1] = ball.radius
-        if float(u[1]) < 0:
-            u[1] = -GROUND_RESTITUTION * u[1]
-            u[[0, 2]] *= 0.8
+    n = ground.normal(x.dtype)
+    if float(ground.height(p)) < ball.radius:  # the ground: back onto it, bouncing off along its normal
+        p = p + (ball.radius - ground.height(p)) * n
+        along = (u * n).sum()
+        if float(along) < 0:
+            u = 0.8 * (u - along * n) - GROUND_RESTITUTION * along * n
     return f, Ball(p.to(ball.position.dtype), u.to(ball.velocity.dtype), ball.mass, ball.radius), hit_any
 
 
 def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsConfig | None = None, rom=None,
             forces: torch.Tensor | None = None, springs: list[list[Spring]] | None = None,
             balls: list[list[Ball]] | None = None, trace: list | None = None,
-            correcting: list[bool] | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int]]:
+            correcting: list[bool] | None = None, env: Environment = FLAT,
+            goals: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int]]:
     """Physical frames for B bodies from their states x0 (B, 267) (world): candidates (B, K, N, 267)
     one-body world frames sampled from the model (frame i of each is the kinematic energy's set
     for frame i); forces (B, N, 22, 3) N per frame, or None; springs and balls: per body, lists.
@@ -112,7 +116,9 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     and each body's length: the frames to keep before sampling again (cfg.resample_distance; a
     hit ends the segment after the frame it lands in). All N frames are made either way.
     trace: a list each frame's energies (solver.energies) are appended to. correcting: the bodies
-    the soft correction runs for (None: all, when cfg.correction > 0)."""
+    the soft correction runs for (None: all, when cfg.correction > 0). env: the ground and the
+    obstacles. goals: goal velocities (B, 3) m/s and the weight (B,) of the centre-of-mass velocity
+    energy toward them (0 for a body without a goal), or None."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())
@@ -134,14 +140,14 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
                 f[b, sp.joint] += sp.stiffness * (sp.target.double() - x[b, sp.joint]) - sp.damping * v[b, sp.joint]
             moved = []
             for ball in balls[b]:
-                fb, ball, struck = _ball_hits(x[b], v[b], bodies.masses[b], ball, cfg.gravity)
+                fb, ball, struck = _ball_hits(x[b], v[b], bodies.masses[b], ball, cfg.gravity, env.ground)
                 f[b] += fb
                 hit[b] |= struck
                 moved.append(ball)
             balls[b] = moved
             ball_frames[b].append(list(moved))
         c = Candidates(cu.joints[:, :, i], cu.root_rot[:, :, i], cu.local_rot[:, :, i])
-        solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom, trace=trace, pose=pose)
+        solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom, env=env, trace=trace, pose=pose, goal=goals)
         if cfg.correction > 0 and any(correcting):  # no force the ground cannot give (DROP §6)
             solved, _, _, contact_forces = correct(solved, x, v, bodies.masses, f, cfg, contact_forces, correcting)
         rows = torch.arange(B)
@@ -154,8 +160,7 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
         # rigid bones can put a joint the particles held above the ground under it (a toe up to
         # 4.6 cm in 0.2 % of frames): the frame is lifted onto it, as the kinematic runtime does
         if cfg.contact > 0:  # (off with the contact energy: that ablation shows what it holds)
-            up = torch.zeros_like(root_pos)
-            up[:, 1] = (-J[..., 1].amin(-1)).clamp(min=0.0)
+            up = lift_above(J, env.ground)
             root_pos, J = root_pos + up, J + up[:, None]
         pose = (root_rot, local)
         out_root.append(root_pos)

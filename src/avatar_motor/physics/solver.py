@@ -15,6 +15,9 @@ quadratic in x is solved with every p_i fixed. The energies here:
   into the data's range (physics/limits.py), back through FK; that move, applied to each iterate,
   is its projection (E_RoM, lagged by one frame: see `step`);
 - after the iterations the ground is also kept as a hard constraint (a last contact projection);
+  the ground may be tilted and obstacles stand on it (physics/environment.py): the same projection;
+- centre-of-mass velocity (DROP Eq. 16), for a body with a goal velocity: the step's momentum
+  pulled toward the goal's (`com_pull`); a rank-one term, solved with the same factor;
 - kinematic: the nearest of K next frames sampled from the motion model (DROP Eq. 10): the model
   is the body's control. The candidates are the caller's (this room samples no network).
 
@@ -37,7 +40,8 @@ import torch
 from ..body import rotations as rot
 from ..body.motion_state import FPS
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, NUM_JOINTS, PARENTS, forward_kinematics
-from . import limits
+from . import environment, limits
+from .environment import FLAT, Environment
 
 BONES = torch.tensor([(PARENTS[j], j) for j in range(1, NUM_JOINTS)])  # (21, 2): parent, child
 
@@ -81,6 +85,9 @@ class PhysicsConfig:
     contact: float = 3.0  # ground (DROP w2)
     range_of_motion: float = 3.0  # joint limits (DROP w3)
     kinematic: float = 3.0  # the motion model's nearest candidate (DROP w_kin)
+    # a goal velocity's pull on the centre of mass (DROP Eq. 16; 0: off): as strong as the prior's,
+    # it helps a run keep up without pulling a walk off its feet (docs/physics.md)
+    com_velocity: float = 3.0
     gravity: float = 9.81  # m/s^2, along -y
     candidates: int = 8  # next frames sampled from the model per body (DROP's K)
     # a segment ends early (and the next is sampled from where the body is) once a ball hits or the
@@ -100,7 +107,7 @@ class PhysicsConfig:
     friction: float = 0.8
 
     def validate(self) -> None:
-        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "gravity", "correction",
+        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "com_velocity", "gravity", "correction",
                      "correction_step", "ghost_threshold", "friction"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0 and v == v and v != float("inf")):
@@ -170,14 +177,12 @@ def project_bones(x: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
     return torch.where(n > 1e-9, d / n.clamp_min(1e-12), up) * rest[..., None]
 
 
-def project_ground(x: torch.Tensor, x_prev: torch.Tensor, ground: float = 0.0) -> torch.Tensor:
-    """(B, 22, 3): a joint of x below its resting height (REST_HEIGHT above `ground`) lifted onto it
-    at its horizontal place in x_prev, the frame before (static friction); any other joint is
-    itself (no energy)."""
-    h = ground + REST_HEIGHT.to(x.dtype)
-    below = x[..., 1] < h
-    p = torch.stack((x_prev[..., 0], h.expand_as(x[..., 1]), x_prev[..., 2]), -1)
-    return torch.where(below[..., None], p, x)
+def project_ground(x: torch.Tensor, x_prev: torch.Tensor, env: Environment = FLAT) -> torch.Tensor:
+    """(B, 22, 3) the contact energy's projection: a joint of x below its resting height
+    (REST_HEIGHT above the ground plane) moved onto it at its place in x_prev, the frame before
+    (static friction); a joint inside an obstacle moved out through the face it came in by
+    (physics/environment.py); any other joint is itself (no energy)."""
+    return environment.project_contact(x, x_prev, REST_HEIGHT, COLLISION_RADIUS, env)
 
 
 @dataclass
@@ -215,18 +220,45 @@ def inertial_target(x: torch.Tensor, v: torch.Tensor, forces: torch.Tensor | Non
     return y
 
 
+def com_pull(masses: torch.Tensor, x: torch.Tensor, goal: torch.Tensor, weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """DROP's centre-of-mass velocity energy (Eq. 16) for bodies at x (B, 22, 3) with goal
+    velocities goal (B, 3) m/s, as c (B, 22) and t (B, 3) with E_com = 1/2 |c^T x' - t|^2 on each
+    horizontal axis of the next frame x': the momentum of the step, sum_j m_j (x'_j - x_j) / h,
+    pulled toward M v_goal. Scaled like every energy here (weight (B,) relative to momentum: a
+    rigid shift d of the body costs weight M |d|^2 / 2h^2); weight 0: no pull. Vertical motion
+    is left to gravity and the ground (a goal along y would hold a body up)."""
+    M = masses.sum(-1)
+    s = (weight.to(masses.dtype) / (M * H**2)).sqrt()  # (B,)
+    c = s[:, None] * masses
+    t = s[:, None] * ((masses[..., None] * x).sum(1) + H * M[:, None] * goal.to(x.dtype))
+    return c, t
+
+
+_HORIZONTAL = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+
+
 def solve_global(bodies: Bodies, y: torch.Tensor, bones: torch.Tensor, ground: torch.Tensor, ranged: torch.Tensor,
-                 kin: torch.Tensor, cfg: PhysicsConfig) -> torch.Tensor:
+                 kin: torch.Tensor, cfg: PhysicsConfig, com: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """The global step: the minimiser of the quadratic with every projection fixed (DROP Eq. 4),
-    by the body's factor. y, ground, ranged, kin: (B, 22, 3); bones: (B, 21, 3)."""
+    by the body's factor. y, ground, ranged, kin: (B, 22, 3); bones: (B, 21, 3). com: `com_pull`'s
+    (c, t): its rank-one term c c^T on the horizontal axes is solved with the same factor by the
+    Sherman-Morrison formula, so the factor stays the body's whatever the goal."""
     m = bodies.masses[..., None] / H**2
     rhs = m * (y + cfg.contact * ground + cfg.range_of_motion * ranged + cfg.kinematic * kin)
     rhs = rhs + _incidence(y.dtype).T @ (_bone_weights(bodies.masses, cfg)[..., None] * bones)
-    return torch.cholesky_solve(rhs, bodies.factor)
+    if com is None:
+        return torch.cholesky_solve(rhs, bodies.factor)
+    c, t = com
+    horizontal = _HORIZONTAL.to(y.dtype)
+    u = torch.cholesky_solve(rhs + c[..., None] * (t * horizontal)[:, None], bodies.factor)
+    z = torch.cholesky_solve(c[..., None], bodies.factor)  # (B, 22, 1) A^-1 c
+    alpha = (c[..., None] * u).sum(1) / (1.0 + (c[..., None] * z).sum(1))  # (B, 3)
+    return u - z * (alpha * horizontal)[:, None]
 
 
 def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor, cands: Candidates,
-             cfg: PhysicsConfig, shift: torch.Tensor | None = None, ground: float = 0.0) -> dict[str, torch.Tensor]:
+             cfg: PhysicsConfig, shift: torch.Tensor | None = None, env: Environment = FLAT,
+             com: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """Each term of the energy the step minimises, at the solved frame `it` (B, 22, 3) after x with
     inertial target y, in joules (B,): momentum 1/(2h^2) |it - y|^2_M, and each constraint's
     weight/2 times its squared distance to its projection (what `eval physics` plots, DROP Fig. 4)."""
@@ -238,28 +270,34 @@ def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor,
     d = it[:, BONES[:, 1]] - it[:, BONES[:, 0]] - project_bones(it, bodies.rest)
     out = {"momentum": term(1.0, y),
            "rigidity": 0.5 * (_bone_weights(bodies.masses, cfg)[..., None] * d ** 2).sum((-1, -2)),
-           "contact": term(cfg.contact, project_ground(it, x, ground)),
+           "contact": term(cfg.contact, project_ground(it, x, env)),
            "kinematic": term(cfg.kinematic, project_prior(it, cands.joints.to(it.dtype), bodies.masses)[0])}
     if shift is not None:  # the range of motion's move (range_shift), as the step applies it
         out["range_of_motion"] = term(cfg.range_of_motion, it + shift)
+    if com is not None:
+        c, t = com
+        out["com_velocity"] = 0.5 * ((((c[..., None] * it).sum(1) - t) * _HORIZONTAL.to(it.dtype)) ** 2).sum(-1)
     return out
 
 
 def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, forces: torch.Tensor | None = None,
-         cfg: PhysicsConfig | None = None, rom=None, ground: float = 0.0, trace: list | None = None,
-         pose: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+         cfg: PhysicsConfig | None = None, rom=None, env: Environment = FLAT, trace: list | None = None,
+         pose: tuple[torch.Tensor, torch.Tensor] | None = None,
+         goal: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One frame (DROP Algorithm 1 without the correction): joints x (B, 22, 3) m and velocities
     v (B, 22, 3) m/s at t, the motion model's candidate next frames, external forces (B, 22, 3) N
-    held over the frame, the range of motion (None: that energy holds everywhere). Starts from the
-    inertial target, then `iterations` local/global rounds. Returns x_{t+1},
+    held over the frame, the range of motion (None: that energy holds everywhere), the ground and
+    obstacles. Starts from the inertial target, then `iterations` local/global rounds. Returns x_{t+1},
     v_{t+1} = (x_{t+1} - x_t) / h and the index (B,) of the candidate the kinematic energy pulled
     toward last (its rotations give the body its twist). trace: a list the step's `energies` are
     appended to. pose: the rotations (root (B, 3, 3), local (B, 21, 3, 3)) whose FK x is, which the
-    range of motion reads (None: no range of motion this step)."""
+    range of motion reads (None: no range of motion this step). goal: goal velocities (B, 3) m/s and
+    the weight (B,) of the centre-of-mass velocity energy toward them (`com_pull`; 0: none)."""
     cfg = cfg or PhysicsConfig()
     x, v, cj = x.to(torch.float64), v.to(torch.float64), cands.joints.to(torch.float64)
     forces = None if forces is None else forces.to(torch.float64)
     y = inertial_target(x, v, forces, bodies.masses, cfg)
+    com = None if goal is None or not bool((goal[1] > 0).any()) else com_pull(bodies.masses, x, *goal)
     # from the inertial target: an energy whose constraint holds projects the iterate onto itself,
     # which pulls toward the start until the iterations converge, so the start must be neutral
     # (from the nearest candidate, a body with no prior energy still followed the prior)
@@ -272,11 +310,11 @@ def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, fo
     for _ in range(cfg.iterations):
         kin, k = project_prior(it, cj, bodies.masses)
         ranged = it if shift is None else it + shift
-        it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, ground), ranged, kin, cfg)
+        it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, env), ranged, kin, cfg, com)
     if trace is not None:
-        trace.append(energies(bodies, x, y, it, cands, cfg, shift, ground))
+        trace.append(energies(bodies, x, y, it, cands, cfg, shift, env, com))
     if cfg.contact > 0:  # the ground as a hard constraint at the end (as position-based dynamics
-        it = project_ground(it, x, ground)  # does): the energy alone left toes 7 cm under it
+        it = project_ground(it, x, env)  # does): the energy alone left toes 7 cm under it
     return it, (it - x) / H, k
 
 

@@ -23,6 +23,7 @@ from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinemat
 from ..body.motion_state import FPS, SLICES, STATE_DIM, Transform, canonical_transform, apply_transform, pack
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
+from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
 from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
 from .processing import physical_faults
 from .sampler import Sampler, _subset
@@ -199,6 +200,18 @@ def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: 
     return pack(root, root_rot, local, J, torch.zeros_like(J)).float()
 
 
+def _raised(x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """States x (B, 267) or (B, N, 267) moved up by h (B,) m (the root and every joint)."""
+    if not bool((h != 0).any()):
+        return x
+    out = x.clone()
+    up = h.to(x.dtype).reshape(len(h), *[1] * (x.dim() - 1))
+    r, j = SLICES["root_pos"].start, SLICES["joints"].start
+    out[..., r + 1:r + 2] += up
+    out[..., j + 1:j + 66:3] += up
+    return out
+
+
 def _body_to_world(a: AvatarState) -> torch.Tensor:
     """The yaw rotation from the avatar's body frame (X left, Z forward) to the world."""
     return canonical_transform(a.state[None].double()).R[0].float()
@@ -226,6 +239,7 @@ class Crowd:
         self.motor = motor
         self.range_of_motion = range_of_motion
         self.trace: dict | None = None  # set to {} to collect each avatar's physics energies per frame
+        self.environment: Environment = FLAT  # the ground and obstacles of physics mode (set_ground, add_obstacle)
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
         self.sampler = Sampler(motor, self.cfg, adaptors)
@@ -553,6 +567,41 @@ class Crowd:
         a.pending_balls.append(ball)  # it enters where the next segment starts (after the cut)
         self._perturbed(a, a.frame + round(BALL_FLIGHT * FPS))  # it may fly that long before it hits
 
+    def set_ground(self, tilt=(0.0, 0.0), pivot=(0.0, 0.0)) -> None:
+        """Tilt the ground (degrees about world X, then Z) about the point pivot (x, z) on the floor;
+        (0, 0) is the flat floor. It acts on the avatars in physics mode (they are resampled from
+        the frame shown); the others walk the flat floor as the model knows it."""
+        self.set_environment(Environment(Ground(tuple(tilt), tuple(pivot)), self.environment.boxes))
+
+    def add_obstacle(self, centre, size, yaw: float = 0.0) -> int:
+        """A static box standing on the floor at centre (x, z), of size (x, y, z) m, turned by yaw
+        degrees; avatars in physics mode run into it (a low one trips a foot). Returns its index."""
+        if len(self.environment.boxes) >= MAX_BOXES:
+            raise ValueError(f"this world holds at most {MAX_BOXES} obstacles; remove one first")
+        self.set_environment(Environment(self.environment.ground,
+                                          self.environment.boxes + (Box(tuple(centre), tuple(size), float(yaw)),)))
+        return len(self.environment.boxes) - 1
+
+    def remove_obstacle(self, index: int | None = None) -> None:
+        """Remove obstacle `index` (None: all of them)."""
+        boxes = self.environment.boxes
+        if index is None:
+            boxes = ()
+        elif isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(boxes):
+            raise ValueError(f"no obstacle {index!r}; this world has {len(boxes)} (indices 0..{len(boxes) - 1})")
+        else:
+            boxes = boxes[:index] + boxes[index + 1:]
+        self.set_environment(Environment(self.environment.ground, boxes))
+
+    def set_environment(self, env: Environment) -> None:
+        """The ground and obstacles of physics mode (see set_ground, add_obstacle)."""
+        if env == self.environment:
+            return
+        self.environment = env
+        for a in self.avatars.values():
+            if a.physics:  # their queued frames met the old world
+                self._perturbed(a)
+
     def balls(self, i: int) -> list:
         """The balls avatar i's simulation holds at the frame shown (physics.Ball, world)."""
         return self._get(i).shown_balls
@@ -671,11 +720,17 @@ class Crowd:
         tf = canonical_transform(batch.x0)
         Rt = tf.R.transpose(-1, -2)
         x0c = apply_transform(batch.x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
+        phys = [k for k, job in enumerate(batch.physics) if job is not None]
+        plain = [k for k, job in enumerate(batch.physics) if job is None]
+        # the model knows a flat floor at y = 0: a simulated body on a tilted ground is sampled as
+        # if that floor lay at the ground's height under its pelvis (and its candidates raised back)
+        floor = torch.zeros(len(batch), dtype=torch.float64)
+        if phys and not self.environment.ground.flat:
+            floor[phys] = self.environment.ground.height_below(batch.x0[phys][:, SLICES["joints"]][:, [0, 2]].double())
+            x0c = _raised(x0c, -floor)
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance: one segment per avatar, and for
         # an avatar in physics mode K candidates instead, all in one batch
-        phys = [k for k, job in enumerate(batch.physics) if job is not None]
-        plain = [k for k, job in enumerate(batch.physics) if job is None]
         K = self.cfg.physics.candidates
         rows = torch.tensor(plain + [k for k in phys for _ in range(K)], dtype=torch.long)
         every = len(rows) == len(batch) and not phys
@@ -697,7 +752,7 @@ class Crowd:
         t3 = time.perf_counter()
         if phys:
             seg_w[torch.tensor(phys)], lengths_p, balls_p = self._simulate(batch, phys, seg_all[len(plain):], x0c, tf,
-                                                                            offsets)
+                                                                            offsets, floor)
             for n, k in enumerate(phys):
                 lengths[k], ball_frames[k] = lengths_p[n], balls_p[n]
         t4 = time.perf_counter()
@@ -707,9 +762,11 @@ class Crowd:
         return seg_w
 
     def _simulate(self, batch: SegmentBatch, phys: list[int], cands_c: torch.Tensor, x0c: torch.Tensor, tf: Transform,
-                  offsets: torch.Tensor):
+                  offsets: torch.Tensor, floor: torch.Tensor):
         """Physics mode: the K candidate segments of each such avatar (canonical, as the network
-        made them) as bodies in the world, then the solver through the segment (physics/simulate)."""
+        made them, on a floor at height `floor` (B,)) as bodies in the world, then the solver
+        through the segment (physics/simulate) in the world's environment, a goal velocity pulling
+        on the centre of mass (PhysicsConfig.com_velocity)."""
         K, N = self.cfg.physics.candidates, cands_c.shape[1]
         idx = torch.tensor(phys).repeat_interleave(K)
         # each candidate processed as a plain avatar's segment is (its feet locked and above the
@@ -717,7 +774,7 @@ class Crowd:
         # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep)
         ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float())
         cands = run_stages(self.cfg, ctx, cands_c.float()).double()
-        cands = apply_transform(cands, tf.R[idx], tf.t[idx]).reshape(len(phys), K, N, STATE_DIM)
+        cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx]).reshape(len(phys), K, N, STATE_DIM)
         p = torch.tensor(phys)
         x0 = batch.x0[p].clone()
         # a push (impulse velocity) is a blow on the particles: their velocities change at once
@@ -727,12 +784,21 @@ class Crowd:
         trace = [] if self.trace is not None else None
         frames, balls, _, lengths = physics.segment(bodies, x0, cands, self.cfg.physics, self.range_of_motion,
                                                     torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
-                                                    [j.balls for j in jobs], trace, [j.disturbed for j in jobs])
+                                                    [j.balls for j in jobs], trace, [j.disturbed for j in jobs],
+                                                    self.environment, self._goals([batch.v_goal[k] for k in phys]))
         if trace is not None:  # per avatar, the energies of the frames it keeps
             for n, k in enumerate(phys):
                 self.trace.setdefault(batch.avatars[k], []).extend(
                     {term: float(e[n]) for term, e in frame.items()} for frame in trace[:lengths[n]])
         return frames.float(), lengths, balls
+
+    def _goals(self, v_goals: list) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Goal velocities (B, 3) and the centre-of-mass energy's weight (B,) for the solver."""
+        w = self.cfg.physics.com_velocity
+        if w <= 0 or all(v is None for v in v_goals):
+            return None
+        goal = torch.stack([torch.zeros(3, dtype=torch.float64) if v is None else v.double() for v in v_goals])
+        return goal, torch.tensor([0.0 if v is None else w for v in v_goals], dtype=torch.float64)
 
     def stale(self, batch: SegmentBatch) -> bool:
         """Every avatar of the batch was cut or removed since it was prepared: its result would be

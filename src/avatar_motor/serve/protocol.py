@@ -79,6 +79,13 @@ _FIELDS = {
     "ball": ({"avatar": lambda v: _int(v, "avatar"), "position": lambda v: _vec(v, 3, "position (x, y, z m)", -1000, 1000),
               "velocity": lambda v: _vec(v, 3, "velocity (m/s)", -60, 60)},
              {"mass": lambda v: _num(v, "mass (kg)", 0.01, 100), "radius": lambda v: _num(v, "radius (m)", 0.02, 1)}),
+    # the world of physics mode (DROP 8.2): a tilted ground, static boxes on the floor
+    "ground": ({"tilt": lambda v: _vec(v, 2, "tilt (degrees about x, about z)", -30, 30)},
+               {"pivot": lambda v: _vec(v, 2, "pivot (x, z m)", -1000, 1000)}),
+    "obstacle": ({"centre": lambda v: _vec(v, 2, "centre (x, z m)", -1000, 1000),
+                  "size": lambda v: _vec(v, 3, "size (x, y, z m)", 0.02, 3)},
+                 {"yaw": lambda v: _num(v, "yaw (degrees)", -360, 360)}),
+    "remove_obstacle": ({}, {"obstacle": lambda v: _int(v, "obstacle")}),
     "seed": ({"seed": lambda v: _int(v, "seed")}, {}),
 }
 COMMANDS = sorted(_FIELDS)

@@ -29,6 +29,9 @@ from .world import CommandError, Pacer, World, measure_capacity
 
 log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
+# commands after which every client is sent the world's `environment` (also in each stats message,
+# since a slow client's queue may drop one message)
+ENVIRONMENT_COMMANDS = ("ground", "obstacle", "remove_obstacle")
 RATE = 120.0  # commands per second per client (a 60-Hz stick and clicks fit; a flood does not)
 BURST = 240  # commands a client may send at once
 FLOOD = 2000  # messages over the limit within a second that close the connection
@@ -303,6 +306,7 @@ class Server:
                 "commands": P.COMMANDS, "avatars": self.world.crowd.ids(), "adaptors": self._adaptor_info(),
                 "licence": self.world.motor.config.get("licence", ""),
                 "persona": bool(self.world.motor.net.cfg.persona),
+                "environment": self.world.environment_payload(),
                 "limits": {"avatars": self.world.max_avatars, "avatars_per_client": self.per_client,
                            "commands_per_second": self.rate, "burst": BURST}}
 
@@ -339,6 +343,11 @@ class Server:
             if cmd["type"] == "spawn":
                 client.spawned.add(result["avatar"])
             await self._send_json(client, {"type": "ack", "id": cid, "ok": True, **result})
+            if cmd["type"] in ENVIRONMENT_COMMANDS:  # every client draws the same world
+                with self.world.lock:
+                    msg = json.dumps(self.world.environment_payload())
+                for c in list(self.clients):
+                    c.offer(msg)
         except (P.ProtocolError, CommandError, ValueError, KeyError) as e:
             if isinstance(e, P.ProtocolError) and e.id is not None:
                 cid = e.id
@@ -457,7 +466,10 @@ class Server:
                 self.fps_measured = (len(window) - 1) / (window[-1] - window[0])
             if window[-1] - last_stats > 1.0:
                 last_stats = window[-1]
-                st = json.dumps({**self.world.stats(), "fps": round(self.fps_measured, 1), "clients": len(self.clients)})
+                with self.world.lock:
+                    env = self.world.crowd.environment.describe()
+                st = json.dumps({**self.world.stats(), "fps": round(self.fps_measured, 1), "clients": len(self.clients),
+                                 "environment": env})
                 if self.world.stalls > last_behind:
                     log.warning("generation behind real time: %d stalled frames so far", self.world.stalls)
                     last_behind = self.world.stalls

@@ -186,6 +186,22 @@ class World:
         self._physics(self.crowd.throw, self._avatar(cmd), cmd["position"], cmd["velocity"], cmd.get("mass", 1.0),
                       cmd.get("radius", 0.11))
 
+    def _cmd_ground(self, cmd):
+        self._physics(self.crowd.set_ground, cmd["tilt"], cmd.get("pivot", (0.0, 0.0)))
+
+    def _cmd_obstacle(self, cmd):
+        try:
+            return {"obstacle": self.crowd.add_obstacle(cmd["centre"], cmd["size"], cmd.get("yaw", 0.0))}
+        except ValueError as e:
+            raise CommandError(str(e)) from None
+
+    def _cmd_remove_obstacle(self, cmd):
+        self._physics(self.crowd.remove_obstacle, cmd.get("obstacle"))
+
+    def environment_payload(self) -> dict:
+        """The ground and obstacles (the `environment` message and the welcome's field)."""
+        return {"type": "environment", **self.crowd.environment.describe()}
+
     def balls_payload(self) -> list[dict]:
         """The balls shown now, each with the avatar it is simulated with (for the stream)."""
         out = []

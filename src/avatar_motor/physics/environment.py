@@ -1,0 +1,160 @@
+"""What the simulated bodies stand on and run into (DROP §8: a tilted platform, obstacles that trip
+a foot): the ground, a plane that may be tilted about a pivot, and static boxes standing on the
+flat floor (y = 0). Both act through the solver's contact energy: a joint's collision sphere that
+enters one is projected back to its surface with static friction (it stays where it was when it
+touched). No new weight, no change to the system matrix (solver.py): the contact projection is
+only a different set.
+
+A foot that meets a box's side is held at the point where it touched until the motion model's
+pull lifts it above the top: so a box across the path trips a walking body the way DROP's fixed
+heel does, and a box low enough is stepped over. Balls bounce on the ground plane and pass
+through boxes (not modelled). Pure functions on batched tensors; the world (runtime Crowd) holds
+one Environment for every body in physics mode."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+MAX_TILT = 30.0  # degrees: steeper ground is a wall, which the motion model has never seen
+MAX_BOXES = 32  # obstacles a world holds
+BOX_SIZE = (0.02, 3.0)  # m: smallest and largest side of an obstacle
+
+
+def _finite(v, n: int, what: str, lo: float, hi: float) -> tuple:
+    try:
+        t = tuple(float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be {n} numbers, got {v!r}") from None
+    if len(t) != n or not all(math.isfinite(x) and lo <= x <= hi for x in t):
+        raise ValueError(f"{what} must be {n} finite numbers in [{lo:g}, {hi:g}], got {v!r}")
+    return t
+
+
+@dataclass(frozen=True)
+class Ground:
+    """The ground plane: the floor y = 0 turned by `tilt` (degrees about the world X axis, then about
+    Z) about the point `pivot` (x, z) on it. Untilted, it is the floor everything else assumes."""
+    tilt: tuple = (0.0, 0.0)
+    pivot: tuple = (0.0, 0.0)
+
+    def __post_init__(self):
+        object.__setattr__(self, "tilt", _finite(self.tilt, 2, "ground tilt (degrees about x, about z)", -MAX_TILT, MAX_TILT))
+        object.__setattr__(self, "pivot", _finite(self.pivot, 2, "ground pivot (x, z m)", -1000, 1000))
+
+    @property
+    def flat(self) -> bool:
+        return self.tilt == (0.0, 0.0)
+
+    def rotation(self, dtype=torch.float64) -> torch.Tensor:
+        """(3, 3) the floor's turn: R_z(tilt z) R_x(tilt x)."""
+        ax, az = (math.radians(a) for a in self.tilt)
+        cx, sx, cz, sz = math.cos(ax), math.sin(ax), math.cos(az), math.sin(az)
+        Rx = torch.tensor([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]], dtype=dtype)
+        Rz = torch.tensor([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
+        return Rz @ Rx
+
+    def normal(self, dtype=torch.float64) -> torch.Tensor:
+        """(3,) the plane's unit normal, up."""
+        return self.rotation(dtype)[:, 1]
+
+    def origin(self, dtype=torch.float64) -> torch.Tensor:
+        """(3,) a point of the plane: the pivot on the floor."""
+        return torch.tensor([self.pivot[0], 0.0, self.pivot[1]], dtype=dtype)
+
+    def height(self, p: torch.Tensor) -> torch.Tensor:
+        """(...,) signed distance of points p (..., 3) above the plane."""
+        return ((p - self.origin(p.dtype)) * self.normal(p.dtype)).sum(-1)
+
+    def height_below(self, xz: torch.Tensor) -> torch.Tensor:
+        """(...,) the plane's y under world points (..., 2) x, z (where a vertical line meets it)."""
+        n, o = self.normal(xz.dtype), self.origin(xz.dtype)
+        return o[1] - (n[0] * (xz[..., 0] - o[0]) + n[2] * (xz[..., 1] - o[2])) / n[1]
+
+
+@dataclass(frozen=True)
+class Box:
+    """A static obstacle standing on the floor: centre (x, z), size (width x along its own X, height,
+    depth along its own Z) in m, turned by `yaw` degrees about +Y."""
+    centre: tuple
+    size: tuple
+    yaw: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "centre", _finite(self.centre, 2, "obstacle centre (x, z m)", -1000, 1000))
+        object.__setattr__(self, "size", _finite(self.size, 3, "obstacle size (x, y, z m)", *BOX_SIZE))
+        object.__setattr__(self, "yaw", _finite((self.yaw,), 1, "obstacle yaw (degrees)", -360, 360)[0])
+
+    def frame(self, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The box's rotation R (3, 3) (its axes as columns), centre c (3,) and half sizes (3,)."""
+        a = math.radians(self.yaw)
+        R = torch.tensor([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]], dtype=dtype)
+        c = torch.tensor([self.centre[0], self.size[1] / 2, self.centre[1]], dtype=dtype)
+        return R, c, torch.tensor(self.size, dtype=dtype) / 2
+
+
+@dataclass(frozen=True)
+class Environment:
+    ground: Ground = field(default_factory=Ground)
+    boxes: tuple = ()
+
+    def __post_init__(self):
+        if len(self.boxes) > MAX_BOXES:
+            raise ValueError(f"at most {MAX_BOXES} obstacles, got {len(self.boxes)}; remove some first")
+
+    @property
+    def plain(self) -> bool:
+        """The flat floor and nothing on it."""
+        return self.ground.flat and not self.boxes
+
+    def describe(self) -> dict:
+        """For clients (the protocol's `environment` message)."""
+        return {"ground": {"tilt": list(self.ground.tilt), "pivot": list(self.ground.pivot)},
+                "obstacles": [{"centre": list(b.centre), "size": list(b.size), "yaw": b.yaw} for b in self.boxes]}
+
+
+FLAT = Environment()
+
+
+def project_ground(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, ground: Ground) -> torch.Tensor:
+    """(B, 22, 3): a joint of x whose centre is less than its resting height rest (22,) above the
+    plane moved onto that height at the place it had in x_prev along the plane (static friction);
+    any other joint is itself."""
+    n = ground.normal(x.dtype)
+    h = ground.height(x)
+    lift = rest.to(x.dtype) - ground.height(x_prev)  # x_prev moved along n onto the resting height
+    p = x_prev + lift[..., None] * n
+    return torch.where((h < rest.to(x.dtype))[..., None], p, x)
+
+
+def project_box(x: torch.Tensor, x_prev: torch.Tensor, radius: torch.Tensor, box: Box) -> torch.Tensor:
+    """(B, 22, 3): a joint of x whose collision sphere (radius (22,)) is inside the box (grown by the
+    radius) moved out through the face it came in by (the face x_prev is furthest outside of; the
+    nearest face if x_prev was inside too), at x_prev's place on that face (static friction); any
+    other joint is itself."""
+    R, c, half = box.frame(x.dtype)
+    e = half + radius.to(x.dtype)[:, None]  # (22, 3) the grown box per joint
+    q, qp = (x - c) @ R, (x_prev - c) @ R  # box coordinates
+    inside = ((q.abs() < e).all(-1))
+    was_out = (qp.abs() - e).amax(-1) > 0
+    ref = torch.where(was_out[..., None], qp, q)
+    axis = (ref.abs() - e).argmax(-1, keepdim=True)  # the face: the axis the reference is most outside along
+    side = torch.where(ref.gather(-1, axis) >= 0, 1.0, -1.0).to(x.dtype)
+    held = qp.scatter(-1, axis, side * e.expand_as(q).gather(-1, axis))
+    return torch.where(inside[..., None], held @ R.T + c, x)
+
+
+def project_contact(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, radius: torch.Tensor,
+                    env: Environment) -> torch.Tensor:
+    """The contact energy's projection: the ground, then each box in turn."""
+    p = project_ground(x, x_prev, rest, env.ground)
+    for box in env.boxes:
+        p = project_box(p, x_prev, radius, box)
+    return p
+
+
+def lift_above(J: torch.Tensor, ground: Ground) -> torch.Tensor:
+    """(B, 3): how far to move each frame of joints J (B, 22, 3) along the ground's normal so that
+    no joint centre is below the plane (zero where none is)."""
+    return (-ground.height(J).amin(-1)).clamp(min=0.0)[..., None] * ground.normal(J.dtype)

@@ -1,0 +1,179 @@
+"""Physics mode's environment (DROP §8.2): a tilted ground, obstacles, and the centre-of-mass
+velocity energy (Eq. 16): each projection, the rank-one solve against a dense one, the energy's
+exact pull on a free body, and the world's commands in the crowd and the protocol."""
+import math
+
+import pytest
+import torch
+
+from avatar_motor.body.motion_state import unpack
+from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, rest_offsets
+from avatar_motor.physics.environment import Box, Environment, Ground, lift_above, project_box
+from avatar_motor.physics.solver import (BONES, COLLISION_RADIUS, H, REST_HEIGHT, Candidates, PhysicsConfig, com_pull,
+                                         energies, prepare, project_bones, project_ground, solve_global, step)
+from avatar_motor.runtime.crowd import standing_state
+
+F = JOINT_INDEX["left_foot"]
+
+
+def _standing(B: int = 1):
+    u = unpack(standing_state().to(torch.float64)[None].expand(B, -1))
+    return u.joints.clone(), u.root_rot, u.local_rot, rest_offsets(None, torch.float64).expand(B, NUM_JOINTS, 3)
+
+
+def test_environment_values_are_checked_with_the_range_in_the_message():
+    for make, word in ((lambda: Ground((40.0, 0.0)), "tilt"), (lambda: Ground((0.0, float("nan"))), "tilt"),
+                       (lambda: Ground((0.0, 0.0), (1.0,)), "pivot"), (lambda: Box((0.0, 0.0), (1.0, 0.0, 1.0)), "size"),
+                       (lambda: Box((0.0, 0.0), (1.0, 1.0, 5.0)), "size"), (lambda: Box(("a", 0.0), (1.0, 1.0, 1.0)), "centre"),
+                       (lambda: Environment(boxes=(Box((0.0, 0.0), (1.0, 1.0, 1.0)),) * 33), "obstacles")):
+        with pytest.raises(ValueError, match=word):
+            make()
+
+
+def test_a_tilted_ground_is_a_plane_through_its_pivot():
+    g = Ground((10.0, -5.0), (1.0, 2.0))
+    n = g.normal()
+    assert abs(float(n.norm()) - 1.0) < 1e-12 and float(n[1]) > 0.98
+    xz = torch.tensor([[3.0, -1.0], [1.0, 2.0]], dtype=torch.float64)
+    y = g.height_below(xz)
+    p = torch.stack((xz[:, 0], y, xz[:, 1]), -1)
+    assert torch.allclose(g.height(p), torch.zeros(2, dtype=torch.float64), atol=1e-12)  # on the plane
+    assert float(y[1]) == 0.0  # the pivot stays on the floor
+    flat = Ground()
+    assert flat.flat and torch.equal(flat.normal(), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+
+
+def test_ground_projection_on_a_tilted_plane_moves_along_its_normal_from_where_the_joint_was():
+    x, _, _, _ = _standing()
+    g = Ground((15.0, 0.0))
+    env = Environment(g)
+    prev = x.clone()
+    sunk = x.clone()
+    sunk[0, F] += torch.tensor([0.05, -0.3, 0.04], dtype=torch.float64)
+    p = project_ground(sunk, prev, env)
+    # onto its resting height above the plane, at the frame before's place along the plane
+    assert abs(float(g.height(p[0, F])) - float(REST_HEIGHT[F])) < 1e-12
+    along = (p[0, F] - prev[0, F]) - ((p[0, F] - prev[0, F]) @ g.normal()) * g.normal()
+    assert float(along.norm()) < 1e-12
+    high = g.height(sunk[0]) >= REST_HEIGHT
+    assert torch.equal(p[0, high], sunk[0, high])  # above the ground: no energy
+    # flat, it is the floor at y = 0 as before
+    q = project_ground(sunk, prev)
+    assert torch.allclose(q[0, F], torch.tensor([prev[0, F, 0], REST_HEIGHT[F], prev[0, F, 2]], dtype=torch.float64))
+    # lifting a frame: no joint centre below the plane, moved along its normal
+    J = x.clone() - torch.tensor([0.0, 0.2, 0.0], dtype=torch.float64)
+    up = lift_above(J, g)
+    assert float(g.height(J + up[:, None]).min()) > -1e-12 and torch.allclose(torch.cross(up[0], g.normal(), dim=0),
+                                                                              torch.zeros(3, dtype=torch.float64))
+
+
+def test_a_box_pushes_a_joint_out_through_the_face_it_came_in_by_and_holds_it_there():
+    box = Box((0.0, 1.0), (2.0, 0.3, 0.2), yaw=0.0)
+    r = COLLISION_RADIUS
+    x = torch.zeros(1, NUM_JOINTS, 3, dtype=torch.float64)
+    x[..., 1] = 5.0  # every other joint far above the box
+    prev = x.clone()
+    # a foot walking into the near side (z < 0.9) at 10 cm high: held at the side, where it touched
+    prev[0, F] = torch.tensor([0.2, 0.1, 0.9 - r[F] - 0.01], dtype=torch.float64)
+    x[0, F] = torch.tensor([0.25, 0.12, 0.95], dtype=torch.float64)
+    p = project_box(x, prev, r, box)
+    assert torch.allclose(p[0, F], torch.tensor([0.2, 0.1, 0.9 - float(r[F])], dtype=torch.float64))
+    assert torch.equal(p[0, :F], x[0, :F])  # joints outside: themselves
+    # coming down onto the top: on it, where it was above
+    prev[0, F] = torch.tensor([0.1, 0.3 + r[F] + 0.02, 1.0], dtype=torch.float64)
+    x[0, F] = torch.tensor([0.12, 0.28, 1.02], dtype=torch.float64)
+    p = project_box(x, prev, r, box)
+    assert torch.allclose(p[0, F], torch.tensor([0.1, 0.3 + float(r[F]), 1.0], dtype=torch.float64))
+    # a turned box: the same in its own frame
+    turned = Box((0.0, 0.0), (2.0, 0.3, 0.2), yaw=90.0)  # its depth now along world X
+    prev[0, F] = torch.tensor([-0.2, 0.1, 0.3], dtype=torch.float64)
+    x[0, F] = torch.tensor([-0.05, 0.1, 0.3], dtype=torch.float64)
+    p = project_box(x, prev, r, turned)
+    assert abs(float(p[0, F, 0]) + 0.1 + float(r[F])) < 1e-12 and abs(float(p[0, F, 2]) - 0.3) < 1e-12
+
+
+def test_the_centre_of_mass_energy_is_solved_exactly_with_the_bodys_factor():
+    """Sherman-Morrison with the body's factor equals a dense solve of the system with c c^T on
+    the horizontal axes, and a body without a goal (weight 0) is solved as before."""
+    torch.manual_seed(0)
+    x, _, _, off = _standing(3)
+    cfg = PhysicsConfig(rigidity=20.0, contact=2.0, range_of_motion=1.5, kinematic=4.0)
+    b = prepare(off, cfg)
+    y, kin, ground, ranged = (x + 0.05 * torch.randn_like(x) for _ in range(4))
+    bones = project_bones(x + 0.02 * torch.randn_like(x), b.rest)
+    goal = torch.tensor([[1.0, 0.0, 0.5], [-2.0, 0.0, 0.0], [0.3, 0.0, 0.3]], dtype=torch.float64)
+    weight = torch.tensor([1.0, 5.0, 0.0], dtype=torch.float64)
+    c, t = com_pull(b.masses, x, goal, weight)
+    got = solve_global(b, y, bones, ground, ranged, kin, cfg, (c, t))
+    plain = solve_global(b, y, bones, ground, ranged, kin, cfg)
+    assert torch.allclose(got[2], plain[2], atol=1e-12)
+    m = b.masses[..., None] / H**2
+    rhs = m * (y + cfg.contact * ground + cfg.range_of_motion * ranged + cfg.kinematic * kin)
+    G = torch.zeros(NUM_JOINTS - 1, NUM_JOINTS, dtype=torch.float64)
+    G[torch.arange(NUM_JOINTS - 1), BONES[:, 1]], G[torch.arange(NUM_JOINTS - 1), BONES[:, 0]] = 1.0, -1.0
+    for i in range(2):
+        for axis in range(3):
+            A = b.matrix[i].clone()
+            r = rhs[i, :, axis] + G.T @ (cfg.rigidity * torch.minimum(b.masses[i, BONES[:, 0]], b.masses[i, BONES[:, 1]])
+                                         / H**2 * bones[i, :, axis])
+            if axis != 1:
+                A = A + torch.outer(c[i], c[i])
+                r = r + c[i] * t[i, axis]
+            assert torch.allclose(got[i, :, axis], torch.linalg.solve(A, r), atol=1e-9)
+    assert not torch.allclose(got[0], plain[0])
+
+
+def test_the_centre_of_mass_energy_alone_moves_a_free_body_toward_the_goal_velocity():
+    """Momentum and E_com only, rigid bones, no gravity: one step gives the centre of mass the
+    velocity w / (1 + w) v_goal (the minimiser of the two quadratics), horizontally only."""
+    x, root, local, off = _standing(2)
+    cfg = PhysicsConfig(contact=0.0, range_of_motion=0.0, kinematic=0.0, gravity=0.0)
+    b = prepare(off, cfg)
+    goal = torch.tensor([[1.2, 0.0, -0.6], [0.0, 3.0, 2.0]], dtype=torch.float64)  # a vertical goal is ignored
+    w = torch.tensor([1.0, 3.0], dtype=torch.float64)
+    cands = Candidates(x[:, None], root[:, None], local[:, None])
+    _, v, _ = step(b, x, torch.zeros_like(x), cands, cfg=cfg, goal=(goal, w))
+    com_v = (b.masses[..., None] * v).sum(1) / b.masses.sum(-1, keepdim=True)
+    want = (w / (1 + w))[:, None] * goal * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    assert torch.allclose(com_v, want, atol=1e-9)
+    trace = []
+    step(b, x, torch.zeros_like(x), cands, cfg=cfg, goal=(goal, w), trace=trace)
+    assert "com_velocity" in trace[0] and bool((trace[0]["com_velocity"] > 0).all())
+    # the energies' term is the one the step minimised: it is smaller at the solution than at rest
+    c, t = com_pull(b.masses, x, goal, w)
+    rest = energies(b, x, x, x, cands, cfg, com=(c, t))["com_velocity"]
+    assert bool((trace[0]["com_velocity"] < rest).all())
+
+
+def test_the_world_environment_in_the_crowd(tmp_path):
+    """set_ground / add_obstacle / remove_obstacle change the world of physics mode, cut the
+    simulated avatars' queues (they met the old world), leave the others alone, and name a bad
+    value; a body on a tilted ground stands on it (no joint below the plane)."""
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    crowd = Crowd(tiny_motor(tmp_path), RuntimeConfig(), 0)
+    sim, plain = crowd.spawn(), crowd.spawn(position=(3.0, 0.0))
+    crowd.set_physics(sim, True)
+    for _ in range(3):
+        crowd.next_frames()
+    epochs = {i: crowd.avatars[i].epoch for i in (sim, plain)}
+    crowd.set_ground((12.0, 0.0), (0.0, 0.0))
+    # only the simulated one is cut and resampled
+    assert crowd.avatars[sim].epoch > epochs[sim] and crowd.avatars[sim].queue == []
+    assert crowd.avatars[plain].epoch == epochs[plain] and crowd.avatars[plain].queue
+    k = crowd.add_obstacle((0.0, 1.0), (1.0, 0.2, 0.2), 30.0)
+    assert k == 0 and len(crowd.environment.boxes) == 1
+    with pytest.raises(ValueError, match="obstacle 3"):
+        crowd.remove_obstacle(3)
+    with pytest.raises(ValueError, match="tilt"):
+        crowd.set_ground((45.0, 0.0))
+    assert crowd.environment.ground.tilt == (12.0, 0.0)  # a refused change leaves the world as it was
+    g = crowd.environment.ground
+    for _ in range(20):
+        x = crowd.next_frames()[sim]
+        assert float(g.height(joints_of(x.double())).min()) > -1e-4
+    crowd.remove_obstacle()
+    crowd.set_ground()
+    assert crowd.environment.plain
+    assert math.isclose(float(joints_of(crowd.state(plain).double())[0, 0]), 3.0, abs_tol=1.0)
