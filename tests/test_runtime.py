@@ -625,3 +625,82 @@ def test_a_kick_is_counted_only_while_standing():
     Jl[..., 1] = Jl[..., 1] * 0.2 + 0.1  # everything near the ground: pelvis at about 0.3 m
     Jl[:, 20, ank, 1] = Jl[:, 20, kn, 1] + 0.1
     assert not impulse_success("right_kick", lying).item()
+
+
+def _walk_with_past(T=24):
+    """A procedural walk split at frame PAST: (past (2, PAST, 267), x0 (2, 267), the rest)."""
+    from avatar_motor.runtime.processing import PAST
+    x = walk_states(T)
+    return x[:, :PAST], x[:, PAST], x[:, PAST + 1:]
+
+
+def test_the_past_leads_into_x0_only_when_it_is_the_frames_before():
+    from avatar_motor.runtime.processing import continuous_past
+    past, x0, _ = _walk_with_past()
+    yes = torch.ones(2, dtype=torch.bool)
+    assert continuous_past(x0, past, yes).all()
+    assert not continuous_past(x0, past, ~yes).any()  # the avatar has no such past
+    moved = x0.clone()
+    moved[:, SLICES["joints"]] += 0.5  # a body put elsewhere (reset, stood up): its past is not its own
+    assert not continuous_past(moved, past, yes).any()
+
+
+def test_smoothing_reads_the_frames_shown_before_the_join():
+    from avatar_motor.runtime.processing import PAST, smooth_segment
+    x = walk_states(24)
+    past, x0, seg = x[:, :PAST], x[:, PAST], x[:, PAST + 1:]
+    yes = torch.ones(2, dtype=torch.bool)
+    # the walk smoothed in one piece: its frames after the join saw the real frames before it
+    whole = smooth_segment(x[:, 0], x[:, 1:], 1.25)[:, PAST:PAST + 4]
+    with_past = smooth_segment(x0, seg, 1.25, past, yes)[:, :4]
+    # a join is no different from any frame (but for the first velocity: a difference from the
+    # x0 shown, where the whole walk has x0 smoothed too)
+    assert torch.allclose(with_past[..., :SLICES["velocities"].start], whole[..., :SLICES["velocities"].start], atol=1e-9)
+    assert torch.allclose(with_past[:, 1:], whole[:, 1:], atol=1e-9)
+    held = smooth_segment(x0, seg, 1.25)[:, :4]  # x0 extrapolated, its rotations held
+    assert float((joints_of(held) - joints_of(whole)).norm(dim=-1).max()) > 1e-4
+    assert torch.equal(smooth_segment(x0, seg, 1.25, past, ~yes), smooth_segment(x0, seg, 1.25))
+
+
+def test_inertialization_matches_the_upper_body_turn_at_the_join():
+    from avatar_motor.body.skeleton import JOINT_INDEX
+    past, x0, seg = _walk_with_past()
+    u = unpack(seg)
+    arm = JOINT_INDEX["left_shoulder"] - 1  # local_rot index
+    knee = JOINT_INDEX["left_knee"] - 1
+    local = u.local_rot.clone()
+    spin = rot.axis_angle_to_matrix(torch.tensor([0.0, 0.0, 1.0], dtype=seg.dtype) * 0.08 * torch.arange(1, 16, dtype=seg.dtype)[:, None])
+    local[:, :, arm] = spin @ local[:, :, arm]  # the new motion swings the arm at 2.4 rad/s more ...
+    local[:, :, knee] = spin @ local[:, :, knee]  # ... and the knee
+    new = pack(u.root_pos, u.root_rot, local, u.joints, u.velocities)
+    yes = torch.ones(2, dtype=torch.bool)
+
+    def first_turn(out, j):  # the rotation's turn from x0 to the first frame, rad
+        return rot.matrix_to_axis_angle(unpack(out).local_rot[:, 0, j] @ unpack(x0).local_rot[:, j].transpose(-1, -2)).norm(dim=-1)
+
+    x0_turn = rot.matrix_to_axis_angle(unpack(x0).local_rot[:, arm] @ unpack(past[:, -1]).local_rot[:, arm].transpose(-1, -2)).norm(dim=-1)
+    matched = inertialize(x0, new, 0.2, match_velocity=yes, before=past[:, -1], has_before=yes)
+    plain = inertialize(x0, new, 0.2, match_velocity=yes)
+    # the arm keeps turning as it did before the join; without the frame before it jumps to the new rate
+    assert float((first_turn(matched, arm) - x0_turn).abs().max()) < 0.01
+    assert float((first_turn(plain, arm) - x0_turn).abs().max()) > 0.05
+    # legs are blended in position only, with or without it (see _TURN_MATCHED)
+    assert torch.allclose(unpack(matched).local_rot[..., knee, :, :], unpack(plain).local_rot[..., knee, :, :], atol=1e-12)
+    # a pushed body (match_velocity false) keeps its new motion's turn
+    pushed = inertialize(x0, new, 0.2, match_velocity=~yes, before=past[:, -1], has_before=yes)
+    assert torch.allclose(pushed, inertialize(x0, new, 0.2, match_velocity=~yes), atol=1e-12)
+
+
+def test_the_runtime_hands_the_frames_shown_to_the_join(motor):
+    from avatar_motor.runtime.processing import PAST
+    crowd = Crowd(motor, seed=0)
+    i = crowd.spawn()
+    assert not bool(crowd.prepare(1).has_past[0])  # just spawned: no past
+    shown = [crowd.next_frames()[i].clone() for _ in range(PAST + 20)]
+    crowd._trim(crowd.avatars[i], 0)  # the queue cut: the next segment continues the frame shown
+    batch = crowd.prepare(1)
+    assert bool(batch.has_past[0])
+    assert torch.equal(batch.x0[0], shown[-1].double())
+    assert torch.equal(batch.past[0], torch.stack(shown[-PAST - 1:-1]).double())
+    crowd.reset(i)  # stood up elsewhere: the past is not its own
+    assert not bool(crowd.prepare(1).has_past[0])

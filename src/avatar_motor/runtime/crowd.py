@@ -25,7 +25,7 @@ from ..model.checkpoint import Motor
 from ..physics import simulate as physics
 from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
 from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
-from .processing import physical_faults
+from .processing import PAST, continuous_past, physical_faults
 from .sampler import Sampler, _subset
 from .stages import DEFAULT_STAGES, PhysicsJob, SegmentBatch, StageContext, check_stages, run_stages
 
@@ -140,6 +140,7 @@ class AvatarState:
     state: torch.Tensor  # (267,) world, the frame being shown
     shape: torch.Tensor  # (SHAPE_DIM,)
     queue: list = field(default_factory=list)  # generated frames not yet shown, (267,) each
+    past: list = field(default_factory=list)  # the last PAST frames shown before `state`, oldest first
     v_goal: torch.Tensor | None = None  # (3,) world m/s
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
@@ -328,6 +329,7 @@ class Crowd:
         push."""
         a = self._get(i)
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
+        a.past = []
         a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
         a.near_target = False
         a.teacher_segments = 0
@@ -336,10 +338,12 @@ class Crowd:
 
     def reseed(self, seed: int) -> None:
         """Restart every avatar's noise from `seed` as spawn seeds it (and use it for later spawns), so
-        a continuation is reproducible from here. Frames already queued are kept."""
+        a continuation is reproducible from here: the frames shown so far are forgotten (a crowd
+        spawned with the states shown now has none). Frames already queued are kept."""
         self.seed = seed
         for i, a in self.avatars.items():
             a.gen.manual_seed(self._noise_seed(i))
+            a.past = []
 
     def interrupt(self, i: int) -> None:
         """Drop all queued frames so the next segment starts from the frame shown now; segments
@@ -614,6 +618,7 @@ class Crowd:
         shown, stalled = {}, []
         for i, a in self.avatars.items():
             if a.queue:
+                a.past = (a.past + [a.state])[-PAST:]
                 a.state = a.queue.pop(0)
                 if a.ball_queue:
                     a.shown_balls = a.ball_queue.pop(0)
@@ -642,6 +647,7 @@ class Crowd:
             if not a.queue:  # a model that keeps failing the guard: the avatar holds its (standing) state
                 a.queue.append(a.state)
             out[a.id] = torch.stack(a.queue)
+            a.past = (a.past + [a.state] + a.queue[:-1])[-PAST:]
             a.state = a.queue[-1]
             a.shown_balls = list(a.balls)
             a.frame += len(a.queue)
@@ -663,6 +669,14 @@ class Crowd:
         if not avs:
             return None
         x0 = torch.stack([a.queue[-1] if a.queue else a.state for a in avs]).double()
+        # the frames before x0 where the avatar has that many (the join's smoothing and blending read
+        # them; processing.continuous_past checks they lead into x0)
+        past = torch.zeros(len(avs), PAST, STATE_DIM, dtype=torch.float64)
+        has_past = torch.zeros(len(avs), dtype=torch.bool)
+        for k, a in enumerate(avs):
+            before = (a.past + [a.state] + a.queue)[:-1][-PAST:]
+            if len(before) == PAST:
+                past[k], has_past[k] = torch.stack(before).double(), True
         dv = torch.zeros(len(avs), 22, 3, dtype=torch.float64)  # impulses: world velocities added to x0
         impulse = torch.zeros(len(avs), dtype=torch.bool)
         for k, a in enumerate(avs):
@@ -688,7 +702,8 @@ class Crowd:
             jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls),
                                    disturbed))
         return SegmentBatch(
-            avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, impulse_velocity=dv, impulse=impulse,
+            avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, past=past, has_past=has_past,
+            impulse_velocity=dv, impulse=impulse,
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
             control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
             adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[a.v_goal for a in avs],
@@ -720,6 +735,7 @@ class Crowd:
         tf = canonical_transform(batch.x0)
         Rt = tf.R.transpose(-1, -2)
         x0c = apply_transform(batch.x0[:, None], Rt, -(Rt @ tf.t[..., None])[..., 0])[:, 0]
+        pastc = apply_transform(batch.past, Rt, -(Rt @ tf.t[..., None])[..., 0])
         phys = [k for k, job in enumerate(batch.physics) if job is not None]
         plain = [k for k, job in enumerate(batch.physics) if job is None]
         # the model knows a flat floor at y = 0: a simulated body on a tilted ground is sampled as
@@ -727,7 +743,8 @@ class Crowd:
         floor = torch.zeros(len(batch), dtype=torch.float64)
         if phys and not self.environment.ground.flat:
             floor[phys] = self.environment.ground.height_below(batch.x0[phys][:, SLICES["joints"]][:, [0, 2]].double())
-            x0c = _raised(x0c, -floor)
+            x0c, pastc = _raised(x0c, -floor), _raised(pastc, -floor)
+        has_past = continuous_past(x0c, pastc, batch.has_past)
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance: one segment per avatar, and for
         # an avatar in physics mode K candidates instead, all in one batch
@@ -745,14 +762,15 @@ class Crowd:
             # is within metres of the origin, and float64 made it 1.3-1.6x slower (bench, one run)
             p = torch.tensor(plain)
             sub_p = batch if every else _subset(batch, p)
-            seg = run_stages(self.cfg, StageContext(x0c[p].float(), offsets[p].float(), sub_p, Rt[p].float()),
+            seg = run_stages(self.cfg, StageContext(x0c[p].float(), offsets[p].float(), sub_p, Rt[p].float(),
+                                                    pastc[p].float(), has_past[p]),
                              seg_all[:len(plain)].float())
             # 4 back to world
             seg_w[p] = apply_transform(seg.double(), tf.R[p], tf.t[p]).float()
         t3 = time.perf_counter()
         if phys:
             seg_w[torch.tensor(phys)], lengths_p, balls_p = self._simulate(batch, phys, seg_all[len(plain):], x0c, tf,
-                                                                            offsets, floor)
+                                                                            offsets, floor, pastc, has_past)
             for n, k in enumerate(phys):
                 lengths[k], ball_frames[k] = lengths_p[n], balls_p[n]
         t4 = time.perf_counter()
@@ -762,7 +780,7 @@ class Crowd:
         return seg_w
 
     def _simulate(self, batch: SegmentBatch, phys: list[int], cands_c: torch.Tensor, x0c: torch.Tensor, tf: Transform,
-                  offsets: torch.Tensor, floor: torch.Tensor):
+                  offsets: torch.Tensor, floor: torch.Tensor, pastc: torch.Tensor, has_past: torch.Tensor):
         """Physics mode: the K candidate segments of each such avatar (canonical, as the network
         made them, on a floor at height `floor` (B,)) as bodies in the world, then the solver
         through the segment (physics/simulate) in the world's environment, a goal velocity pulling
@@ -772,7 +790,8 @@ class Crowd:
         # each candidate processed as a plain avatar's segment is (its feet locked and above the
         # ground, one body): the prior pulls toward what the runtime shows, not the network's raw
         # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep)
-        ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float())
+        ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float(),
+                           pastc[idx].float(), has_past[idx])
         cands = run_stages(self.cfg, ctx, cands_c.float()).double()
         cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx]).reshape(len(phys), K, N, STATE_DIM)
         p = torch.tensor(phys)

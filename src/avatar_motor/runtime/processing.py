@@ -11,7 +11,7 @@ import math
 import torch
 
 from ..body import rotations as rot
-from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, PARENTS, forward_kinematics
+from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, JOINT_NAMES, PARENTS, forward_kinematics
 from ..body.motion_state import FPS, SLICES, facing_yaw, joints_of, pack, unpack
 
 
@@ -175,6 +175,21 @@ def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) ->
     return _moved(x0, seg, root_pos, joints)
 
 
+PAST = 8  # frames of an avatar's shown past the join reads (the widest smoothing kernel's radius)
+
+
+def continuous_past(x0: torch.Tensor, past: torch.Tensor, has_past: torch.Tensor, tolerance: float = 1e-3) -> torch.Tensor:
+    """(B,) bool: the frames past (B, P, 267) lead into x0 (B, 267): x0's joints minus its velocity
+    (a backward difference) land on the last of them. A body moved between frames (a reset, a
+    raised or stood-up body) has a past that is not its own."""
+    if past.shape[1] == 0:
+        return torch.zeros(len(x0), dtype=torch.bool)
+    u0 = unpack(x0)
+    before = u0.joints - u0.velocities / FPS
+    gap = (joints_of(past[:, -1]) - before).norm(dim=-1).amax(-1)
+    return has_past & (gap < tolerance)
+
+
 def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
     """r frames before the initial state x0 (B, 267), oldest first: positions extrapolated back
     along x0's joint velocities (the past continued at constant velocity), rotations held."""
@@ -187,12 +202,14 @@ def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
     return past
 
 
-def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Tensor = 1.0) -> torch.Tensor:
+def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Tensor = 1.0,
+                   past: torch.Tensor | None = None, has_past: torch.Tensor | None = None) -> torch.Tensor:
     """Temporal low-pass of a generated segment (our addition to PRIMAL's processing): a Gaussian
     of `sigma` frames (a number, or one per body (B,)) along time over root position, rotations (in
-    6D, re-orthonormalized) and joint locations. In front of the segment stands x0's past continued
-    at x0's velocity, so the join keeps its speed; the end is point-reflected. The network's x0
-    estimate keeps a little of the last step's noise; at 30 fps that is mm-scale jitter which reads
+    6D, re-orthonormalized) and joint locations. In front of the segment stands x0's past: the
+    frames shown before it (past (B, P, 267), oldest first, where has_past (B,) says they lead
+    into x0), else x0 continued back at its velocity with its rotations held; the end is
+    point-reflected. The network's x0 estimate keeps a little of the last step's noise; at 30 fps that is mm-scale jitter which reads
     as foot skating. Velocities are recomputed afterwards."""
     B, _, D = seg.shape
     sig = torch.as_tensor(sigma, dtype=seg.dtype).expand(B)
@@ -206,7 +223,14 @@ def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Ten
     k = torch.exp(-0.5 * (t / sig[:, None].clamp_min(1e-3)) ** 2)  # (B, 2r + 1); sigma 0 -> a delta
     k = k * (t.abs() <= radius[:, None])
     k = k / k.sum(1, keepdim=True)
-    pad_front = torch.cat((_history(x0, r - 1), x0[:, None]), 1) if r > 1 else x0[:, None]
+    front = _history(x0, r - 1)
+    if past is not None and r > 1 and bool(has_past.any()):
+        # the frames shown, rotations turning as they did (held ones braked every join: a jerk
+        # twice every second); older ones extrapolated where P < r - 1
+        known = past[:, -(r - 1):]
+        known = torch.cat((front[:, :r - 1 - known.shape[1]], known), 1)
+        front = torch.where(has_past[:, None, None], known.to(front.dtype), front)
+    pad_front = torch.cat((front, x0[:, None]), 1) if r > 1 else x0[:, None]
     # the end point-reflected (2 x_N - x_{N-k}): continues the segment's trend, where a mirror
     # image would bring every segment to a halt at its last frame
     mirror = seg.flip(1)[:, 1:r + 1]
@@ -328,8 +352,17 @@ def spring_decay(x: torch.Tensor, v: torch.Tensor, halflife: float, t: torch.Ten
     return e * (x + j1 * t)
 
 
+# the rotations whose turn at a join inertialize matches: spine, neck, head and arms. Not the
+# legs: with theirs matched too the joins were smoother still, but over a minute the avatars
+# stopped stepping and stood; not the root: a steered body then turned later toward its facing
+# goal (the commit that added this has the figures)
+_TURN_MATCHED = torch.tensor([j != 0 and not any(k in name for k in ("hip", "knee", "ankle", "foot"))
+                              for j, name in enumerate(JOINT_NAMES)])
+
+
 def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
-                match_velocity: torch.Tensor | None = None) -> torch.Tensor:
+                match_velocity: torch.Tensor | None = None, before: torch.Tensor | None = None,
+                has_before: torch.Tensor | None = None) -> torch.Tensor:
     """Blend the start of generated frames seg (B, N, 267) into the initial state x0 (B, 267).
 
     The new motion, extrapolated back one frame to the time of x0 (x1 - (x2 - x1)), should be x0;
@@ -339,7 +372,10 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     matched too (offset x0's velocity minus the new motion's first velocity), so the stream has no
     kink at the join. Where it is false (the avatar was just pushed: x0's velocity carries an impulse
     that the network has already turned into motion and must not be added again) only positions
-    are blended. Velocities are then recomputed as backward differences, so the result is consistent.
+    are blended. With the frame shown before x0 (before (B, 267), where has_before (B,)), the
+    velocities of the upper body's rotations are matched as well (each one's turn from it to x0
+    against the new motion's first turn; _TURN_MATCHED); other rotations are blended in position
+    only. Velocities are then recomputed as backward differences, so the result is consistent.
     """
     B, N, _ = seg.shape
     dt = 1.0 / FPS
@@ -360,7 +396,16 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     # rotation extrapolated back one frame: R1 (R2^T R1)
     R_back = R[:, 0] @ (R[:, nxt].transpose(-1, -2) @ R[:, 0])
     off_r = rot.matrix_to_axis_angle(R0 @ R_back.transpose(-1, -2))  # (B, 22, 3)
-    d_r = spring_decay(off_r[:, None], torch.zeros_like(off_r[:, None]), halflife, t[..., None])
+    off_w = torch.zeros_like(off_r)
+    if before is not None and match_velocity is not None and N > 1:
+        ub = unpack(before)
+        Rb = torch.cat((ub.root_rot[:, None], ub.local_rot), 1)
+        # per frame turns (left increments): x0's from the frame before, the new motion's first
+        w0 = rot.matrix_to_axis_angle(R0 @ Rb.transpose(-1, -2))
+        w_new = rot.matrix_to_axis_angle(R[:, 0] @ R_back.transpose(-1, -2))
+        use = (match_velocity & has_before).reshape(B, 1, 1) & _TURN_MATCHED.reshape(1, 22, 1)
+        off_w = torch.where(use, (w0 - w_new) * FPS, off_w)
+    d_r = spring_decay(off_r[:, None], off_w[:, None], halflife, t[..., None])
     R = rot.axis_angle_to_matrix(d_r) @ R
     return _pack_moving(x0, root_pos, R[:, :, 0], R[:, :, 1:], joints)
 

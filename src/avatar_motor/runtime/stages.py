@@ -34,6 +34,8 @@ class SegmentBatch:
     avatars: list[int]
     epochs: list[int]  # each avatar's interruption count at the snapshot (stale results are dropped)
     x0: torch.Tensor  # (B, 267) float64, the frame each segment continues from
+    past: torch.Tensor  # (B, PAST, 267) float64, the frames shown before x0, oldest first
+    has_past: torch.Tensor  # (B,) bool: the avatar has that many (not just spawned, reset or stood up)
     impulse_velocity: torch.Tensor  # (B, 22, 3) world m/s added to x0's velocities for the network
     impulse: torch.Tensor  # (B,) bool: an impulse is applied at this segment
     shapes: torch.Tensor  # (B, SHAPE_DIM)
@@ -74,6 +76,10 @@ class StageContext:
     offsets: torch.Tensor  # (B, 22, 3) each body's bones
     batch: SegmentBatch
     Rt: torch.Tensor  # (B, 3, 3) world -> canonical rotation
+    # (B, PAST, 267) the frames shown before x0, canonical, and (B,) where they lead into x0
+    # (processing.continuous_past); None: no past (each stage then extrapolates x0)
+    past: torch.Tensor | None = None
+    has_past: torch.Tensor | None = None
     turned: torch.Tensor | None = None  # (B, N) yaw added on purpose by turn_toward
 
 
@@ -118,7 +124,7 @@ def smoothing_widths(cfg, x0: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
 def _smooth(cfg, ctx: StageContext, seg):
     if cfg.smooth_sigma <= 0:
         return seg
-    return smooth_segment(ctx.x0, seg, smoothing_widths(cfg, ctx.x0, seg))
+    return smooth_segment(ctx.x0, seg, smoothing_widths(cfg, ctx.x0, seg), ctx.past, ctx.has_past)
 
 
 def _snap(cfg, ctx: StageContext, seg):
@@ -126,7 +132,9 @@ def _snap(cfg, ctx: StageContext, seg):
 
 
 def _inertialize(cfg, ctx: StageContext, seg):
-    return inertialize(ctx.x0, seg, cfg.inertia_halflife, match_velocity=~ctx.batch.impulse)
+    before = None if ctx.past is None else ctx.past[:, -1]
+    return inertialize(ctx.x0, seg, cfg.inertia_halflife, match_velocity=~ctx.batch.impulse, before=before,
+                       has_before=ctx.has_past)
 
 
 def _fk(cfg, ctx: StageContext, seg):
