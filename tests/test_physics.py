@@ -333,7 +333,7 @@ def test_a_physics_segment_is_one_body_and_stands_when_the_model_stands():
     from avatar_motor.body.motion_state import body_mismatch, joints_of
     from avatar_motor.physics.simulate import segment
     state, cands, off = _segment_inputs()
-    frames, balls, chosen, lengths = segment(prepare(off), state, cands)
+    frames, balls, chosen, lengths, _ = segment(prepare(off), state, cands)
     assert lengths == [15]  # nothing perturbed it: no reason to resample
     assert frames.shape == (1, 15, 267) and chosen.shape == (1, 15)
     assert float(body_mismatch(frames, off[:, None]).max()) < 1e-6  # joints = FK of the rotations
@@ -341,6 +341,32 @@ def test_a_physics_segment_is_one_body_and_stands_when_the_model_stands():
     v = frames[..., -66:].reshape(1, 15, 22, 3)
     J = joints_of(frames)
     assert torch.allclose(v[:, 1:], (J[:, 1:] - J[:, :-1]) * 30, atol=1e-9)  # velocities are the body's
+
+
+def test_the_prior_s_pull_carries_over_a_join_and_decays():
+    """A body held off its candidates feels their pull; the next segment's candidates start at the
+    body, so without the pull carried over it would drop to nothing at the join (a jerk). (Its decay
+    over the segment: the crowd's test of the join's jerk, eval realism --physics.)"""
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.physics.simulate import segment
+    state, cands, off = _segment_inputs()
+    b = prepare(off)
+    ahead = cands.clone()
+    ahead[..., -132:-66] += torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64).repeat(22)  # 10 cm ahead of the body
+    _, _, _, _, pulls = segment(b, state, ahead)
+    last = pulls[:, 0]
+    assert float(last[..., 2].mean()) > 0.01  # the body lags behind its candidates: pulled forward
+    # a segment from there with candidates where the body is: the pull continues, then fades
+    _, _, _, _, plain = segment(b, state, cands)
+    _, _, _, _, carried = segment(b, state, cands, pull=last)
+    up = joints_of(state)[0, :, 1] > 0.3  # the feet stay planted: their pull is not carried (skating)
+    big = float(last[:, up].norm(dim=-1).max())
+    assert float(plain[:, 0, up].norm(dim=-1).max()) < 0.2 * big  # (what holds it up against gravity)
+    # the same way, a share of it (the body already moves toward it in that first frame, as it did
+    # in the frame `last` was taken at)
+    assert float(carried[:, 0, up, 2].min()) > 0.3 * float(last[:, up, 2].max())
+    feet = [JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]  # (the ankles follow the shins a little)
+    assert float((carried[:, 0, feet] - plain[:, 0, feet]).norm(dim=-1).max()) < 0.1 * big
 
 
 def test_a_ball_knocks_the_body_and_bounces_off():
@@ -353,12 +379,12 @@ def test_a_ball_knocks_the_body_and_bounces_off():
     chest = joints_of(state)[0, JOINT_INDEX["spine3"]]
     ball = Ball(chest + torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64), torch.tensor([0.0, 0.0, -10.0], dtype=torch.float64),
                 3.0, 0.11)
-    frames, balls, _, lengths = segment(b, state, cands, balls=[[ball]])
+    frames, balls, _, lengths, _ = segment(b, state, cands, balls=[[ball]])
     J = joints_of(frames)
     after = balls[0][-1][0]
     assert float(after.velocity[2]) > 0  # bounced back toward +z
     assert float(J[0, :8, JOINT_INDEX["spine3"], 2].min()) < float(chest[2]) - 0.03  # the chest was knocked back
-    free, _, _, _ = segment(b, state, cands)  # no ball: the chest stays
+    free, _, _, _, _ = segment(b, state, cands)  # no ball: the chest stays
     assert float((joints_of(free)[0, :, JOINT_INDEX["spine3"]] - chest).norm(dim=-1).max()) < 0.01
     hit_frame = next(i for i, bs in enumerate(balls[0]) if float(bs[0].velocity[2]) > 0)
     assert hit_frame <= 3  # 0.6 m at 10 m/s: within two frames
@@ -372,7 +398,7 @@ def test_a_spring_pulls_the_hand():
     w = JOINT_INDEX["right_wrist"]
     hand = joints_of(state)[0, w]
     target = hand + torch.tensor([-0.4, 0.3, 0.5], dtype=torch.float64)
-    frames, _, _, _ = segment(prepare(off), state, cands, springs=[[Spring(w, target, stiffness=800.0)]])
+    frames, _, _, _, _ = segment(prepare(off), state, cands, springs=[[Spring(w, target, stiffness=800.0)]])
     d0 = float((hand - target).norm())
     d1 = float((joints_of(frames)[0, -1, w] - target).norm())
     assert d1 < 0.7 * d0, (d0, d1)
@@ -514,3 +540,22 @@ def test_the_soft_correction_runs_after_an_external_effect_only(tmp_path, monkey
         while crowd.avatars[i].frame < crowd.avatars[i].disturbed_until + 1:
             crowd.step_segment()
         assert not disturbed()
+
+
+def test_the_crowd_carries_the_pull_from_segment_to_segment(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    crowd = Crowd(tiny_motor(tmp_path), RuntimeConfig(), 0)
+    i = crowd.spawn()
+    crowd.set_physics(i, True)
+    assert crowd.prepare(1).physics[0].pull is None  # spawned: nothing pulled it yet
+    for _ in range(20):
+        crowd.next_frames()
+    a = crowd.avatars[i]
+    assert len(a.pull_queue) == len(a.queue) and all(p.shape == (22, 3) for p in a.pull_queue)
+    assert a.shown_pull is not None and a.shown_pull.shape == (22, 3)
+    job = crowd.prepare(10**6).physics[0]  # (every avatar, whatever it has queued)
+    # the pull at the frame the next segment continues: the last queued, or the one shown
+    assert torch.equal(job.pull, a.pull_queue[-1] if a.queue else a.shown_pull)
+    crowd.reset(i)
+    assert crowd.prepare(10**6).physics[0].pull is None

@@ -22,13 +22,15 @@ from dataclasses import dataclass
 import torch
 
 from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
+from ..runtime.processing import spring_decay
 from .environment import FLAT, Environment, Ground, lift_above
-from .solver import COLLISION_RADIUS, H, Bodies, Candidates, PhysicsConfig, pose_from_particles, step
+from .solver import COLLISION_RADIUS, H, REST_HEIGHT, Bodies, Candidates, PhysicsConfig, pose_from_particles, step
 from .wrench import correct
 
 BALL_RESTITUTION = 0.3  # the ball keeps this share of its speed along the hit (a leather ball on a body)
 GROUND_RESTITUTION = 0.5  # and this on the ground
 HIT_REACH = 0.3  # m: the joints around a hit one that take the blow with it
+PLANTED_MARGIN = 0.07  # m above its resting height a joint counts as on the ground (no carried pull)
 
 
 @dataclass
@@ -106,7 +108,8 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
             forces: torch.Tensor | None = None, springs: list[list[Spring]] | None = None,
             balls: list[list[Ball]] | None = None, trace: list | None = None,
             correcting: list[bool] | None = None, env: Environment = FLAT,
-            goals: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int]]:
+            goals: tuple[torch.Tensor, torch.Tensor] | None = None,
+            pull: torch.Tensor | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int], torch.Tensor]:
     """Physical frames for B bodies from their states x0 (B, 267) (world): candidates (B, K, N, 267)
     one-body world frames sampled from the model (frame i of each is the kinematic energy's set
     for frame i); forces (B, N, 22, 3) N per frame, or None; springs and balls: per body, lists.
@@ -118,7 +121,12 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     trace: a list each frame's energies (solver.energies) are appended to. correcting: the bodies
     the soft correction runs for (None: all, when cfg.correction > 0). env: the ground and the
     obstacles. goals: goal velocities (B, 3) m/s and the weight (B,) of the centre-of-mass velocity
-    energy toward them (0 for a body without a goal), or None."""
+    energy toward them (0 for a body without a goal), or None. pull (B, 22, 3): where the kinematic
+    energy pulled each joint at the frame x0 is (its target minus the body, as returned for the
+    segment before), or None. The candidates start at the body, so at a join that pull would
+    vanish at once (a jerk twice a second); it is carried into the candidates instead and decays
+    (cfg.pull_halflife), but for the joints on the ground at x0 (PLANTED_MARGIN), which would
+    skate. Also returns each frame's pull (B, N, 22, 3)."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())
@@ -130,6 +138,13 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     balls = [list(b) for b in (balls or [[] for _ in range(B)])]
     out_root, out_rot, out_local, out_J, chosen, ball_frames = [], [], [], [], [], [[] for _ in range(B)]
     lengths = [N] * B
+    pulls = []
+    if pull is not None:  # a joint on the ground keeps its footing: its pull is not carried (skating)
+        planted = env.ground.height(x) < REST_HEIGHT.to(x.dtype) + PLANTED_MARGIN
+        pull = pull.double() * (~planted)[..., None]
+    # the carried pull's share at each frame: a critically damped decay from 1, at rest
+    carried = spring_decay(torch.ones(()), torch.zeros(()), cfg.pull_halflife,
+                           torch.arange(1, N + 1, dtype=torch.float64) * H) if pull is not None else None
     contact_forces = None  # the frame before's (wrench.correct), which spare most frames the NNLS
     correcting = [True] * B if correcting is None else list(correcting)
     for i in range(N):
@@ -146,11 +161,15 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
                 moved.append(ball)
             balls[b] = moved
             ball_frames[b].append(list(moved))
-        c = Candidates(cu.joints[:, :, i], cu.root_rot[:, :, i], cu.local_rot[:, :, i])
+        targets = cu.joints[:, :, i]
+        if pull is not None:
+            targets = targets + carried[i] * pull[:, None]
+        c = Candidates(targets, cu.root_rot[:, :, i], cu.local_rot[:, :, i])
         solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom, env=env, trace=trace, pose=pose, goal=goals)
         if cfg.correction > 0 and any(correcting):  # no force the ground cannot give (DROP §6)
             solved, _, _, contact_forces = correct(solved, x, v, bodies.masses, f, cfg, contact_forces, correcting)
         rows = torch.arange(B)
+        pulls.append(c.joints[rows, k] - solved)
         off = ((solved - c.joints[rows, k]) ** 2).sum(-1)  # (B, 22)
         apart = ((off * bodies.masses).sum(-1) / bodies.masses.sum(-1)).sqrt()
         for b in range(B):
@@ -173,4 +192,4 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     J = torch.stack(out_J, 1)
     vel = finite_velocities(J, FPS, first=(J[:, 0] - joints_of(x0.double())) * FPS)
     frames = pack(torch.stack(out_root, 1), torch.stack(out_rot, 1), torch.stack(out_local, 1), J, vel)
-    return frames, ball_frames, torch.stack(chosen, 1), lengths
+    return frames, ball_frames, torch.stack(chosen, 1), lengths, torch.stack(pulls, 1)

@@ -94,6 +94,9 @@ class PhysicsConfig:
     # solved body is this far (m, mass-weighted RMS over the joints) from every candidate: the
     # candidates were drawn at the segment's start and no longer describe this body
     resample_distance: float = 0.08
+    # s: the kinematic energy's pull on a body at a segment's end is carried into the next
+    # segment's candidates and decays with this half-life (simulate.segment)
+    pull_halflife: float = 0.1
     # DROP §6: after each step, a frame whose root-wrench metric (force no ground contact can give)
     # is above `ghost_threshold` body weights is moved the least that removes most of it (the
     # weight w of Eq. 14, e.g. 1e-5; 0: off). The threshold is what real held-out motion reaches
@@ -118,6 +121,8 @@ class PhysicsConfig:
             raise ValueError(f"physics iterations must be an integer 1..100, got {self.iterations!r}")
         if not (isinstance(self.candidates, int) and 1 <= self.candidates <= 64):
             raise ValueError(f"physics candidates must be an integer 1..64, got {self.candidates!r}")
+        if not (self.pull_halflife > 0):
+            raise ValueError(f"physics pull_halflife must be > 0 s, got {self.pull_halflife!r}")
         if not (self.resample_distance > 0):
             raise ValueError(f"physics resample_distance must be > 0 m, got {self.resample_distance!r}")
 

@@ -169,6 +169,9 @@ class AvatarState:
     balls: list = field(default_factory=list)  # physics.Ball: the balls as of the last queued frame
     shown_balls: list = field(default_factory=list)  # and as of the frame shown
     ball_queue: list = field(default_factory=list)  # the balls of each queued frame (beside queue)
+    # the kinematic energy's pull (22, 3) at each queued frame (beside queue; None off physics) and at the frame shown
+    pull_queue: list = field(default_factory=list)
+    shown_pull: torch.Tensor | None = None
     pending_balls: list = field(default_factory=list)  # thrown, entering at the next segment
     # the avatar frame until which the soft correction runs (SETTLE after an external effect)
     disturbed_until: int = 0
@@ -329,7 +332,7 @@ class Crowd:
         push."""
         a = self._get(i)
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
-        a.past = []
+        a.past, a.shown_pull = [], None
         a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
         a.near_target = False
         a.teacher_segments = 0
@@ -358,6 +361,7 @@ class Crowd:
         """Keep the first n queued frames (and their balls): the next segment starts after them."""
         del a.queue[n:]
         del a.ball_queue[n:]
+        del a.pull_queue[n:]
         a.balls = list(a.ball_queue[-1]) if a.ball_queue else list(a.shown_balls)
 
     def _changed(self, a: AvatarState) -> None:
@@ -622,6 +626,8 @@ class Crowd:
                 a.state = a.queue.pop(0)
                 if a.ball_queue:
                     a.shown_balls = a.ball_queue.pop(0)
+                if a.pull_queue:
+                    a.shown_pull = a.pull_queue.pop(0)
                 a.frame += 1
                 a.forces = [f for f in a.forces if f[3] > a.frame]
             else:
@@ -650,6 +656,7 @@ class Crowd:
             a.past = (a.past + [a.state] + a.queue[:-1])[-PAST:]
             a.state = a.queue[-1]
             a.shown_balls = list(a.balls)
+            a.shown_pull = a.pull_queue[-1] if a.pull_queue else None
             a.frame += len(a.queue)
             self._trim(a, 0)
         return out
@@ -700,7 +707,7 @@ class Crowd:
             # thrown balls stay pending until a segment with them commits (a cut one would lose them)
             disturbed = bool(a.springs) or first <= a.disturbed_until  # a spring while it pulls
             jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls),
-                                   disturbed))
+                                   disturbed, a.pull_queue[-1] if a.queue else a.shown_pull))
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, past=past, has_past=has_past,
             impulse_velocity=dv, impulse=impulse,
@@ -757,6 +764,7 @@ class Crowd:
         t2 = time.perf_counter()
         seg_w = torch.empty(len(batch), seg_all.shape[1], STATE_DIM)
         lengths, ball_frames = [seg_all.shape[1]] * len(batch), [[] for _ in range(len(batch))]
+        pulls = [None] * len(batch)
         if plain:
             # test-time processing, ending in one body, in float32: in the canonical frame every value
             # is within metres of the origin, and float64 made it 1.3-1.6x slower (bench, one run)
@@ -769,29 +777,31 @@ class Crowd:
             seg_w[p] = apply_transform(seg.double(), tf.R[p], tf.t[p]).float()
         t3 = time.perf_counter()
         if phys:
-            seg_w[torch.tensor(phys)], lengths_p, balls_p = self._simulate(batch, phys, seg_all[len(plain):], x0c, tf,
-                                                                            offsets, floor, pastc, has_past)
+            seg_w[torch.tensor(phys)], lengths_p, balls_p, pulls_p = self._simulate(batch, phys, seg_all[len(plain):], x0c,
+                                                                                     tf, offsets, floor, has_past)
             for n, k in enumerate(phys):
-                lengths[k], ball_frames[k] = lengths_p[n], balls_p[n]
+                lengths[k], ball_frames[k], pulls[k] = lengths_p[n], balls_p[n], pulls_p[n]
         t4 = time.perf_counter()
-        batch.lengths, batch.ball_frames = lengths, ball_frames
+        batch.lengths, batch.ball_frames, batch.pulls = lengths, ball_frames, pulls
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "physics": t4 - t3,
                         "total": t4 - t0, "batch": len(batch)}
         return seg_w
 
     def _simulate(self, batch: SegmentBatch, phys: list[int], cands_c: torch.Tensor, x0c: torch.Tensor, tf: Transform,
-                  offsets: torch.Tensor, floor: torch.Tensor, pastc: torch.Tensor, has_past: torch.Tensor):
+                  offsets: torch.Tensor, floor: torch.Tensor, has_past: torch.Tensor):
         """Physics mode: the K candidate segments of each such avatar (canonical, as the network
         made them, on a floor at height `floor` (B,)) as bodies in the world, then the solver
         through the segment (physics/simulate) in the world's environment, a goal velocity pulling
-        on the centre of mass (PhysicsConfig.com_velocity)."""
+        on the centre of mass (PhysicsConfig.com_velocity), the kinematic pull carried from the
+        frame before where the body continues it (has_past)."""
         K, N = self.cfg.physics.candidates, cands_c.shape[1]
         idx = torch.tensor(phys).repeat_interleave(K)
         # each candidate processed as a plain avatar's segment is (its feet locked and above the
         # ground, one body): the prior pulls toward what the runtime shows, not the network's raw
         # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep)
-        ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float(),
-                           pastc[idx].float(), has_past[idx])
+        # (without the frames shown before: the body's continuity is the solver's momentum; the
+        # simulated past read into the candidates made them jerkier, see the commit)
+        ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float())
         cands = run_stages(self.cfg, ctx, cands_c.float()).double()
         cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx]).reshape(len(phys), K, N, STATE_DIM)
         p = torch.tensor(phys)
@@ -801,15 +811,21 @@ class Crowd:
         jobs = [batch.physics[k] for k in phys]
         bodies = prepare_bodies(offsets[p], self.cfg.physics)
         trace = [] if self.trace is not None else None
-        frames, balls, _, lengths = physics.segment(bodies, x0, cands, self.cfg.physics, self.range_of_motion,
-                                                    torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
-                                                    [j.balls for j in jobs], trace, [j.disturbed for j in jobs],
-                                                    self.environment, self._goals([batch.v_goal[k] for k in phys]))
+        pull = torch.zeros(len(phys), 22, 3, dtype=torch.float64)
+        for n, (k, job) in enumerate(zip(phys, jobs)):
+            # (not after an external effect: a pushed body is far from candidates that no longer
+            # describe it, and carried on, that pull flung bodies up to 4 m into the air)
+            if job.pull is not None and bool(has_past[k]) and not job.disturbed:
+                pull[n] = job.pull.double()
+        frames, balls, _, lengths, pulls = physics.segment(bodies, x0, cands, self.cfg.physics, self.range_of_motion,
+                                                           torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
+                                                           [j.balls for j in jobs], trace, [j.disturbed for j in jobs],
+                                                           self.environment, self._goals([batch.v_goal[k] for k in phys]), pull)
         if trace is not None:  # per avatar, the energies of the frames it keeps
             for n, k in enumerate(phys):
                 self.trace.setdefault(batch.avatars[k], []).extend(
                     {term: float(e[n]) for term, e in frame.items()} for frame in trace[:lengths[n]])
-        return frames.float(), lengths, balls
+        return frames.float(), lengths, balls, pulls.float()
 
     def _goals(self, v_goals: list) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Goal velocities (B, 3) and the centre-of-mass energy's weight (B,) for the solver."""
@@ -855,6 +871,8 @@ class Crowd:
                     a.teacher_segments -= 1
                 frames_balls = batch.ball_frames[k] if batch.ball_frames and batch.ball_frames[k] else [[]] * n
                 a.ball_queue.extend(list(b) for b in frames_balls[:n])
+                pulls = batch.pulls[k] if batch.pulls else None
+                a.pull_queue.extend([None] * n if pulls is None else list(pulls[:n].unbind(0)))
                 a.balls = list(a.ball_queue[-1]) if a.physics else []
                 if batch.physics[k] is not None:
                     a.pending_balls = [b for b in a.pending_balls if not any(b is t for t in batch.physics[k].thrown)]

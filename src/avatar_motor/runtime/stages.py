@@ -25,6 +25,7 @@ class PhysicsJob:
     balls: list  # physics.Ball, as of the segment's initial state
     thrown: list  # those of them thrown since the last segment (pending until this one commits)
     disturbed: bool = True  # an external effect is recent: the soft correction runs (Crowd.SETTLE)
+    pull: torch.Tensor | None = None  # (22, 3) the kinematic energy's pull at the initial state (simulate.segment)
 
 
 @dataclass
@@ -53,6 +54,7 @@ class SegmentBatch:
     # stops early to resample after a hit), and the balls of each frame [row][frame][ball]
     lengths: list | None = None
     ball_frames: list | None = None
+    pulls: list | None = None  # physics rows: the kinematic pull at each frame (n, 22, 3), else None
 
     def __len__(self) -> int:
         return len(self.avatars)
