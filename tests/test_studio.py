@@ -21,9 +21,9 @@ needs_chromium = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian 
 
 
 @contextmanager
-def studio_page(world: World, ready: str, **limits):
-    """The studio of a served `world` open in headless Chromium, once the page's `ready` JS holds.
-    limits: the server's (default: its cap measured at start-up)."""
+def studio_page(world: World, ready: str, query: str = "", **limits):
+    """The studio of a served `world` open in headless Chromium (at `/?query`), once the page's
+    `ready` JS holds. limits: the server's (default: its cap measured at start-up)."""
     if not (STATIC / "dist" / "studio.js").exists():
         pytest.fail("studio not built: run 'make web'")
     from playwright.sync_api import sync_playwright
@@ -33,7 +33,7 @@ def studio_page(world: World, ready: str, **limits):
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
             page = browser.new_page(viewport={"width": 1100, "height": 700})
-            page.goto(f"http://127.0.0.1:{srv.port}/")
+            page.goto(f"http://127.0.0.1:{srv.port}/{'?' + query if query else ''}")
             page.wait_for_function(ready, timeout=30000)
             yield page
             assert page.evaluate("window.studio.errors.length") == 0
@@ -393,3 +393,15 @@ def test_a_crowd_of_personas_in_the_studio(tmp_path, artifacts):
         time.sleep(3.0)
         page.screenshot(path=str(artifacts / "studio-personas.png"))
         page.keyboard.up("KeyW")
+
+
+@needs_chromium
+def test_the_studio_draws_at_low_quality_without_a_gpu(tmp_path, artifacts):
+    world = World(shipped_or_tiny(tmp_path), RuntimeConfig())
+    with studio_page(world, "window.studio && window.studio.received > 10 && window.studio.renderTimes.length > 0",
+                     query="quality=low") as page:
+        assert page.evaluate("window.studio.quality") == "low"
+        drawn = page.evaluate("window.studio.renderTimes.length")
+        page.wait_for_function("window.studio.renderTimes.length > 0 && window.studio.frame > 30", timeout=30000)
+        assert drawn > 0 and page.evaluate("window.studio.joints()") is not None  # an avatar is drawn and posed
+        page.screenshot(path=str(artifacts / "studio-low.png"))

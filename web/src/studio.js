@@ -9,9 +9,12 @@ const token = params.get("token");
 const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${token ? "?token=" + encodeURIComponent(token) : ""}`;
 
 // ---------------------------------------------------------------- scene
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-renderer.setPixelRatio(window.devicePixelRatio);
-renderer.shadowMap.enabled = true;
+// ?quality=low: no antialiasing and no shadows, for a browser without a GPU (software GL drew
+// twice the frames with 8 avatars)
+const QUALITY = params.get("quality") === "low" ? "low" : "high";
+const renderer = new THREE.WebGLRenderer({ antialias: QUALITY === "high", preserveDrawingBuffer: true });
+renderer.setPixelRatio(QUALITY === "high" ? window.devicePixelRatio : Math.min(1, window.devicePixelRatio));
+renderer.shadowMap.enabled = QUALITY !== "low";
 $("view").appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x262c33);
@@ -213,6 +216,7 @@ const bodies = new Map();
 const state = { frame: 0, connected: false, fpsTimes: [], renderTimes: [], selected: 0, model: "", lastStats: null,
   received: 0, errors: [], stalls: 0, stallsRecent: 0, physics: new Set(), balls: [] };
 window.studio = state;  // for tests and the console
+state.quality = QUALITY;
 state.humans = () => [...humans.humans.keys()];  // the avatars drawn as skinned humans
 let ws;
 let nextId = 1;
@@ -272,7 +276,7 @@ function warn() {
   const msgs = [];
   if (state.stallsRecent > 0) msgs.push(`generation is behind: ${state.stallsRecent} stalled frame(s) in the last second`);
   if (state.fpsTimes.length < 28 && state.connected && state.received > 60) msgs.push(`stream below 30 fps (${state.fpsTimes.length})`);
-  if (state.renderTimes.length < 28 && state.received > 60) msgs.push(`this browser draws ${state.renderTimes.length} fps`);
+  if (state.renderTimes.length < 28 && state.received > 60) msgs.push(`this browser draws ${state.renderTimes.length} fps${QUALITY === "high" ? " (open the studio with ?quality=low)" : ""}`);
   $("warn").textContent = msgs.join(" · ");
 }
 
