@@ -8,7 +8,7 @@ import torch
 
 from avatar_motor.body.motion_state import unpack
 from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, rest_offsets
-from avatar_motor.physics.environment import Box, Environment, Ground, lift_above, project_box
+from avatar_motor.physics.environment import Box, Environment, Ground, lift_above, project_box, push_out_of_boxes
 from avatar_motor.physics.solver import (BONES, COLLISION_RADIUS, H, REST_HEIGHT, Candidates, PhysicsConfig, com_pull,
                                          energies, prepare, project_bones, project_ground, solve_global, step)
 from avatar_motor.runtime.crowd import standing_state
@@ -90,6 +90,24 @@ def test_a_box_pushes_a_joint_out_through_the_face_it_came_in_by_and_holds_it_th
     x[0, F] = torch.tensor([-0.05, 0.1, 0.3], dtype=torch.float64)
     p = project_box(x, prev, r, turned)
     assert abs(float(p[0, F, 0]) + 0.1 + float(r[F])) < 1e-12 and abs(float(p[0, F, 2]) - 0.3) < 1e-12
+
+
+def test_a_body_is_moved_out_of_a_box_as_one_piece_through_the_nearest_face():
+    box = Box((0.0, 1.0), (2.0, 0.3, 0.2))  # top at 0.3 m, sides at z = 0.9 and 1.1
+    env = Environment(boxes=(box,))
+    r = COLLISION_RADIUS
+    J = torch.zeros(2, NUM_JOINTS, 3, dtype=torch.float64)
+    J[..., 1] = 1.0  # every joint well above the box ...
+    J[0, F] = torch.tensor([0.1, 0.3 + float(r[F]) - 0.04, 1.0], dtype=torch.float64)  # ... but a foot 4 cm into its top
+    J[1, F] = torch.tensor([0.1, 0.15, 0.9 - float(r[F]) + 0.03], dtype=torch.float64)  # ... and one 3 cm into its near side
+    shift = push_out_of_boxes(J, r, env)
+    assert torch.allclose(shift[0], torch.tensor([0.0, 0.04, 0.0], dtype=torch.float64), atol=1e-12)  # stands on it
+    assert torch.allclose(shift[1], torch.tensor([0.0, 0.0, -0.03], dtype=torch.float64), atol=1e-12)  # bumped back
+    moved = J + shift[:, None]
+    R, c, half = box.frame(J.dtype)
+    assert not (((moved - c) @ R).abs() < half + r[:, None] - 1e-9).all(-1).any()  # no sphere inside now
+    assert torch.equal(push_out_of_boxes(moved, r, env), torch.zeros(2, 3, dtype=torch.float64))
+    assert torch.equal(push_out_of_boxes(J, r, Environment()), torch.zeros(2, 3, dtype=torch.float64))
 
 
 def test_the_centre_of_mass_energy_is_solved_exactly_with_the_bodys_factor():

@@ -158,3 +158,33 @@ def lift_above(J: torch.Tensor, ground: Ground) -> torch.Tensor:
     """(B, 3): how far to move each frame of joints J (B, 22, 3) along the ground's normal so that
     no joint centre is below the plane (zero where none is)."""
     return (-ground.height(J).amin(-1)).clamp(min=0.0)[..., None] * ground.normal(J.dtype)
+
+
+def push_out_of_boxes(J: torch.Tensor, radius: torch.Tensor, env: Environment, rounds: int = 2) -> torch.Tensor:
+    """(B, 3): how far to move each frame of joints J (B, 22, 3) so that no joint's collision
+    sphere (radius (22,)) is inside a box: each round, the deepest sphere leaves through its
+    nearest face and the whole body moves with it (zero where none is inside). A body is one rigid
+    piece here, as lift_above moves it for the ground."""
+    shift = torch.zeros(J.shape[0], 3, dtype=J.dtype)
+    for _ in range(rounds):
+        moved = False
+        for box in env.boxes:
+            R, c, half = box.frame(J.dtype)
+            q = (J + shift[:, None] - c) @ R  # box coordinates (B, 22, 3)
+            over = (half + radius.to(J.dtype)[:, None]) - q.abs()  # (B, 22, 3) > 0 on every axis: inside
+            depth, axis = over.amin(-1), over.argmin(-1)  # the nearest face's overlap, and its axis
+            depth = torch.where((over > 0).all(-1), depth, torch.zeros_like(depth))
+            deepest = depth.argmax(-1)  # (B,)
+            rows = torch.arange(J.shape[0])
+            d, a = depth[rows, deepest], axis[rows, deepest]
+            if not bool((d > 0).any()):
+                continue
+            sign = torch.sign(q[rows, deepest, a])
+            sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+            local = torch.zeros(J.shape[0], 3, dtype=J.dtype)
+            local[rows, a] = sign * d
+            shift = shift + local @ R.T
+            moved = True
+        if not moved:
+            break
+    return shift

@@ -23,7 +23,7 @@ import torch
 
 from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
 from ..runtime.processing import spring_decay
-from .environment import FLAT, Environment, Ground, lift_above
+from .environment import FLAT, Environment, Ground, lift_above, push_out_of_boxes
 from .solver import COLLISION_RADIUS, H, REST_HEIGHT, Bodies, Candidates, PhysicsConfig, pose_from_particles, step
 from .wrench import correct
 
@@ -179,7 +179,11 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
         # rigid bones can put a joint the particles held above the ground under it (a toe up to
         # 4.6 cm in 0.2 % of frames): the frame is lifted onto it, as the kinematic runtime does
         if cfg.contact > 0:  # (off with the contact energy: that ablation shows what it holds)
+            # (and out of the obstacles: the solved particles were, but the body on its rest-length
+            # bones from the pelvis can put a foot 3-8 cm into a low bar)
             up = lift_above(J, env.ground)
+            if env.boxes:
+                up = up + push_out_of_boxes(J + up[:, None], COLLISION_RADIUS, env)
             root_pos, J = root_pos + up, J + up[:, None]
         pose = (root_rot, local)
         out_root.append(root_pos)
