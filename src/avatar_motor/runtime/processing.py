@@ -395,16 +395,18 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     R = torch.cat((u.root_rot[:, :, None], u.local_rot), 2)  # (B, N, 22, 3, 3)
     # rotation extrapolated back one frame: R1 (R2^T R1)
     R_back = R[:, 0] @ (R[:, nxt].transpose(-1, -2) @ R[:, 0])
-    off_r = rot.matrix_to_axis_angle(R0 @ R_back.transpose(-1, -2))  # (B, 22, 3)
-    off_w = torch.zeros_like(off_r)
     if before is not None and match_velocity is not None and N > 1:
         ub = unpack(before)
         Rb = torch.cat((ub.root_rot[:, None], ub.local_rot), 1)
-        # per frame turns (left increments): x0's from the frame before, the new motion's first
-        w0 = rot.matrix_to_axis_angle(R0 @ Rb.transpose(-1, -2))
-        w_new = rot.matrix_to_axis_angle(R[:, 0] @ R_back.transpose(-1, -2))
+        # the offset, and the per frame turns (left increments): x0's from the frame before, the
+        # new motion's first (one conversion for the three: at batch 1 each call's dispatch counts)
+        off_r, w0, w_new = rot.matrix_to_axis_angle(torch.stack((R0 @ R_back.transpose(-1, -2), R0 @ Rb.transpose(-1, -2),
+                                                                  R[:, 0] @ R_back.transpose(-1, -2)))).unbind(0)
         use = (match_velocity & has_before).reshape(B, 1, 1) & _TURN_MATCHED.reshape(1, 22, 1)
-        off_w = torch.where(use, (w0 - w_new) * FPS, off_w)
+        off_w = torch.where(use, (w0 - w_new) * FPS, torch.zeros_like(off_r))
+    else:
+        off_r = rot.matrix_to_axis_angle(R0 @ R_back.transpose(-1, -2))  # (B, 22, 3)
+        off_w = torch.zeros_like(off_r)
     d_r = spring_decay(off_r[:, None], off_w[:, None], halflife, t[..., None])
     R = rot.axis_angle_to_matrix(d_r) @ R
     return _pack_moving(x0, root_pos, R[:, :, 0], R[:, :, 1:], joints)
