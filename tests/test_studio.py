@@ -275,7 +275,15 @@ def test_physics_in_the_studio(tmp_path, artifacts):
         ev = [e["cmd"] for e in world.events if e["cmd"]["type"] == "ball"]
         assert ev and ev[-1]["mass"] == 4
         # the hand pulled by a spring while dragged
-        time.sleep(2.0)  # the knocked body settles
+        # the knocked body settles (a body still stepping off the hit can carry the grabbed part
+        # away from the pointer faster than the spring pulls it: seen once in three CI runs)
+        deadline = time.time() + 8
+        while time.time() < deadline:
+            p0 = page.evaluate("window.studio.pelvis(0)")
+            time.sleep(0.5)
+            p1 = page.evaluate("window.studio.pelvis(0)")
+            if sum((a - b) ** 2 for a, b in zip(p0, p1)) ** 0.5 < 0.05:
+                break
         # the hand first; the page (3-4 frames/s here) is slow to say where it is while it moves,
         # so a miss tries a larger part (the spring and the mouse path are the same)
         for w in (JOINT_INDEX[n] for n in ("right_wrist", "right_wrist", "head", "spine3", "pelvis")):
