@@ -258,9 +258,8 @@ def environment_eval(motor: Motor, n: int = 16, seed: int = 0, cfg: RuntimeConfi
         J = _standing_run(motor, n, seconds, cfg, seed, rom, Environment(boxes=boxes), (0.0, GOAL_SPEED))
         depth = torch.zeros(())
         for k, b in enumerate(boxes):
-            R, c, half = b.frame(J.dtype)
-            q = (J[k] - c) @ R
-            depth = torch.maximum(depth, ((half + COLLISION_RADIUS[:, None]) - q.abs()).amin(-1).max())
+            q, e, _, _ = b.local(J[k], COLLISION_RADIUS)
+            depth = torch.maximum(depth, (e - q.abs()).amin(-1).max())
         crossed = J[:, -1, 0, 2] > BAR_AHEAD + 0.5
         out["bars"].append({"condition": f"bar {100 * h:g} cm high", "height": h, "crossed": float(crossed.float().mean()),
                             "penetration_cm": 100 * max(0.0, float(depth)), **_up_figures(J[..., 0, 1])})

@@ -93,6 +93,13 @@ class Box:
         c = torch.tensor([self.centre[0], self.size[1] / 2, self.centre[1]], dtype=dtype)
         return R, c, torch.tensor(self.size, dtype=dtype) / 2
 
+    def local(self, x: torch.Tensor, radius: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points x (..., 22, 3) with spheres of radius (22,), in the box's frame: their coordinates q
+        (..., 22, 3), the half sizes e (22, 3) of the box grown by each radius (a sphere is inside
+        where |q| < e on every axis, by e - |q|), and the box's rotation R (3, 3) and centre c (3,)."""
+        R, c, half = self.frame(x.dtype)
+        return (x - c) @ R, half + radius.to(x.dtype)[:, None], R, c
+
 
 @dataclass(frozen=True)
 class Environment:
@@ -133,9 +140,8 @@ def project_box(x: torch.Tensor, x_prev: torch.Tensor, radius: torch.Tensor, box
     radius) moved out through the face it came in by (the face x_prev is furthest outside of; the
     nearest face if x_prev was inside too), at x_prev's place on that face (static friction); any
     other joint is itself."""
-    R, c, half = box.frame(x.dtype)
-    e = half + radius.to(x.dtype)[:, None]  # (22, 3) the grown box per joint
-    q, qp = (x - c) @ R, (x_prev - c) @ R  # box coordinates
+    q, e, R, c = box.local(x, radius)
+    qp = (x_prev - c) @ R  # box coordinates
     inside = ((q.abs() < e).all(-1))
     was_out = (qp.abs() - e).amax(-1) > 0
     ref = torch.where(was_out[..., None], qp, q)
@@ -169,9 +175,8 @@ def push_out_of_boxes(J: torch.Tensor, radius: torch.Tensor, env: Environment, r
     for _ in range(rounds):
         moved = False
         for box in env.boxes:
-            R, c, half = box.frame(J.dtype)
-            q = (J + shift[:, None] - c) @ R  # box coordinates (B, 22, 3)
-            over = (half + radius.to(J.dtype)[:, None]) - q.abs()  # (B, 22, 3) > 0 on every axis: inside
+            q, e, R, _ = box.local(J + shift[:, None], radius)  # box coordinates (B, 22, 3)
+            over = e - q.abs()  # (B, 22, 3) > 0 on every axis: inside
             depth, axis = over.amin(-1), over.argmin(-1)  # the nearest face's overlap, and its axis
             depth = torch.where((over > 0).all(-1), depth, torch.zeros_like(depth))
             deepest = depth.argmax(-1)  # (B,)

@@ -170,7 +170,7 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
             solved, _, _, contact_forces = correct(solved, x, v, bodies.masses, f, cfg, contact_forces, correcting)
         rows = torch.arange(B)
         pulls.append(c.joints[rows, k] - solved)
-        off = ((solved - c.joints[rows, k]) ** 2).sum(-1)  # (B, 22)
+        off = (pulls[-1] ** 2).sum(-1)  # (B, 22)
         apart = ((off * bodies.masses).sum(-1) / bodies.masses.sum(-1)).sqrt()
         for b in range(B):
             if lengths[b] == N and (hit[b] or float(apart[b]) > cfg.resample_distance):
