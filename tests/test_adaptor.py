@@ -518,3 +518,40 @@ def test_guidance_against_the_nearest_other_label(kind):
     m.guidance = "others"
     with pytest.raises(ValueError, match="'nearest' or 'null'"):
         m(t, x, x0, y, scale=2.0)
+
+
+def test_adapt_resumes_exactly_from_its_saved_state(tmp_path):
+    """A run stopped after 4 of 6 steps and started again with the same out folder ends with the
+    weights of a run that went through, and a state folder of another adaptor is refused."""
+    from avatar_motor.data.cache import import_motion
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from avatar_motor.train.adapt import AdaptConfig, adapt
+    from .conftest_models import tiny_motor
+    from .fixture_tools import FIXTURES
+    tiny_motor(tmp_path)
+    src = tmp_path / "clips"
+    src.mkdir()
+    for k, name in enumerate(("walk_lafan1", "walk_cmu")):
+        (src / f"dataset-9_walk_normal_00{k}.bvh").write_bytes((FIXTURES / f"{name}.bvh").read_bytes())
+    import_motion(src, name="clips", progress=False, workers=1)
+
+    def cfg(out, **kw):
+        return AdaptConfig(**{"task": "reach", "base": str(tmp_path / "tiny"), "data": ["clips"], "steps": 6, "batch": 4,
+                              "split": "all", "swap_neighbours": 2, "swap_pool": 50, "checkpoint_every": 2,
+                              "out": str(tmp_path / out), **kw})
+
+    base = load_checkpoint(tmp_path / "tiny").net
+    whole = load_adaptor(adapt(cfg("whole"), progress=False), base).adaptor_state()
+    adapt(cfg("parts", steps=4), progress=False)
+    assert json.loads((tmp_path / "parts" / "train_state" / "state.json").read_text())["step"] == 4
+    resumed_path = adapt(cfg("parts"), progress=False)
+    resumed = load_adaptor(resumed_path, base).adaptor_state()
+    assert json.loads((resumed_path / "adaptor.json").read_text())["steps"] == 6
+    assert whole.keys() == resumed.keys()
+    for k in whole:
+        assert torch.equal(whole[k], resumed[k]), k
+    # the same out folder for an adaptor of another kind: named, nothing overwritten
+    before = (tmp_path / "parts" / "train_state" / "state.safetensors").read_bytes()
+    with pytest.raises(ValueError, match="another adaptor run.*kind"):
+        adapt(cfg("parts", kind="omni"), progress=False)
+    assert (tmp_path / "parts" / "train_state" / "state.safetensors").read_bytes() == before

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
+from safetensors.torch import load_file, save_file
 
 from ..body.skeleton import ANKLES_AND_FEET, NUM_JOINTS, SHAPE_DIM
 from ..data.cache import MotionCache
@@ -18,7 +19,8 @@ from ..body.motion_state import SLICES
 from ..model.adaptor import AdaptedDenoiser, AdaptorConfig, base_fingerprint, save_adaptor
 from ..model.checkpoint import load_checkpoint
 from .losses import motion_loss
-from .trainer import EMA, resolve_caches
+from ..io.atomic import recover_folder, replace_folder
+from .trainer import EMA, _flatten_optimizer, _state_complete, _unflatten_optimizer, resolve_caches
 
 
 @dataclass
@@ -84,6 +86,10 @@ class AdaptConfig:
     # right hand; with mirrored windows 21 of 45 guide rollouts used the left); a target has none.
     # Measured (5 classes, 30 min): R-precision 0.844 without, 0.787 with (guide read 31 vs 13 of 45)
     mirror: bool | None = None
+    # the training state (weights, average, optimizer, random streams, step, elapsed time) is
+    # saved every this many steps, and a run started again with the same `out` continues from it
+    checkpoint_every: int = 250
+    threads: int = 0  # 0 = torch default
 
 
 def target_of(x: torch.Tensor) -> torch.Tensor:
@@ -138,6 +144,57 @@ class _NeighbourPool:
         return near[torch.arange(len(near)), torch.randint(near.shape[1], (len(near),), generator=gen)]
 
 
+# what a continued run may change: how long it runs, how it checkpoints, where its folder is
+_MAY_CHANGE = ("steps", "max_minutes", "checkpoint_every", "threads", "out")
+
+
+def _recipe(cfg: AdaptConfig) -> dict:
+    return {k: v for k, v in asdict(cfg).items() if k not in _MAY_CHANGE}
+
+
+def _save_state(folder: Path, cfg: AdaptConfig, step: int, seconds: float, trainable: dict, ema: EMA, opt,
+                gen: torch.Generator, log: list[float]) -> None:
+    """An adaptation's training state, swapped in whole (io/atomic.py): a kill at any instant
+    leaves the previous state or this one."""
+    opt_t, opt_meta = _flatten_optimizer(opt)
+    tensors = {**{f"net.{k}": v.detach() for k, v in trainable.items()}, **{f"ema.{k}": v for k, v in ema.shadow.items()},
+               **opt_t, "rng.data": gen.get_state(), "rng.torch": torch.get_rng_state(),
+               "loss": torch.tensor(log, dtype=torch.float64)}
+
+    def fill(tmp: Path) -> None:
+        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / "state.safetensors"))
+        # written last: marks the state complete
+        (tmp / "state.json").write_text(json.dumps({"step": step, "seconds": seconds, "recipe": _recipe(cfg), "optimizer": opt_meta}))
+
+    replace_folder(folder, fill, _state_complete)
+
+
+def _resume(folder: Path, cfg: AdaptConfig, trainable: dict, ema: EMA, opt, gen: torch.Generator,
+            log: list[float]) -> tuple[int, float]:
+    """Load a saved adaptation state into the run (weights, average, optimizer, random streams,
+    the loss log); returns (step, seconds trained), (0, 0) for a new run."""
+    st = recover_folder(folder, _state_complete)
+    if st is None:
+        return 0, 0.0
+    meta = json.loads((st / "state.json").read_text())
+    recipe = _recipe(cfg)
+    changed = sorted(k for k in recipe if meta["recipe"].get(k) != recipe[k])
+    if changed:
+        raise ValueError(f"{folder} holds the state of another adaptor run (its {', '.join(changed)} differ from this "
+                         "config's; a continued run may change only " + ", ".join(_MAY_CHANGE) + "): give this run "
+                         "another out folder, or delete that one to start afresh")
+    tensors = load_file(str(st / "state.safetensors"))
+    with torch.no_grad():
+        for k, p in trainable.items():
+            p.copy_(tensors[f"net.{k}"])
+    ema.shadow = {k: tensors[f"ema.{k}"].clone() for k in trainable}
+    opt.load_state_dict(_unflatten_optimizer(tensors, meta["optimizer"]))
+    gen.set_state(tensors["rng.data"])
+    torch.set_rng_state(tensors["rng.torch"])
+    log.extend(tensors["loss"].tolist())
+    return meta["step"], meta["seconds"]
+
+
 def _label_filter(caches: list[MotionCache], cfg: AdaptConfig, classes: list[str]):
     """Which clips form the adaptation set: those labelled with one of `classes`, at most
     cfg.clips_per_class of each (the first by file name among the chosen split)."""
@@ -175,6 +232,10 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         resolve_caches(cfg.swap_data)  # a missing cache is named before anything loads
     if cfg.lr_schedule not in ("constant", "cosine"):
         raise ValueError(f"lr_schedule must be 'constant' or 'cosine', not {cfg.lr_schedule!r}")
+    if cfg.checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every is a number of steps (1 or more), not {cfg.checkpoint_every}")
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     motor = load_checkpoint(cfg.base)
     shipped_net = motor.net  # the base the adaptor is used with (and recorded against)
@@ -222,9 +283,15 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
     pool_labels = states_label[pool.clip] if pool is not None else None
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
+    state_dir = out / "train_state"
+    log: list[float] = []
+    first, seconds = _resume(state_dir, cfg, trainable, ema, opt, gen, log)
+    if first:
+        t0 -= seconds  # a wall-time limit (and the info's seconds) count the time already trained
+        print(f"resumed from {state_dir} at step {first}", flush=True)
     (out / "adapt_config.json").write_text(json.dumps(asdict(cfg), indent=1))
-    bar = tqdm(range(cfg.steps), desc=f"adapt {cfg.task} ({cfg.kind})", disable=not progress, mininterval=5)
-    log = []
+    bar = tqdm(range(first, cfg.steps), desc=f"adapt {cfg.task} ({cfg.kind})", disable=not progress, mininterval=5,
+               initial=first, total=cfg.steps)
     for step in bar:
         if cfg.max_minutes and time.time() - t0 > cfg.max_minutes * 60:
             break
@@ -271,6 +338,10 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         log.append(float(losses["loss"].detach()))
         if (step + 1) % 25 == 0:
             bar.set_postfix(loss=f"{sum(log[-25:]) / 25:.4f}")
+        if (step + 1) % cfg.checkpoint_every == 0:
+            _save_state(state_dir, cfg, step + 1, time.time() - t0, trainable, ema, opt, gen, log)
+    if len(log) % cfg.checkpoint_every:  # where the run ended (steps or wall time): it can be continued
+        _save_state(state_dir, cfg, len(log), time.time() - t0, trainable, ema, opt, gen, log)
     info = {"task": cfg.task, "steps": len(log), "batch": cfg.batch, "kind": cfg.kind, "scratch": cfg.scratch, "seconds": time.time() - t0, "windows": len(ds),
             "frames": ds.frames_total, "minutes_of_data": ds.frames_total / 30 / 60, "final_loss": sum(log[-50:]) / max(1, len(log[-50:])), "ema_decay": cfg.ema_decay, "lr_schedule": cfg.lr_schedule, "swap_initial": cfg.swap_initial, "swap_neighbours": cfg.swap_neighbours, "swap_match": cfg.swap_match, "swap_data": cfg.swap_data, "mirror": mirrored,
             "licence": motor.config.get("licence", "")}
