@@ -32,6 +32,20 @@ def test_quat_roundtrip(R):
     assert (q[..., 0] >= 0).all()
 
 
+def test_axis_angle_near_zero_agrees_with_quaternions_and_has_finite_gradients():
+    # across the switch to the Taylor factors (|aa| = 1e-4) and at exactly zero
+    for scale in (0.0, 1e-7, 9.9e-5, 1.01e-4, 1e-2, 3.0):
+        aa = (torch.tensor([[0.3, -0.8, 0.52]], dtype=torch.float64) * scale).requires_grad_()
+        R = rot.axis_angle_to_matrix(aa)
+        assert torch.allclose(R, rot.quat_to_matrix(rot.axis_angle_to_quat(aa)), atol=1e-12)
+        R.sum().backward()
+        assert torch.isfinite(aa.grad).all()
+    for dtype in (torch.float32, torch.float64):  # orthonormal in either precision
+        R = rot.axis_angle_to_matrix(torch.randn(1000, 3, dtype=dtype) * 2)
+        err = (R @ R.transpose(-1, -2) - torch.eye(3, dtype=dtype)).abs().max()
+        assert err < (1e-5 if dtype == torch.float32 else 1e-12)
+
+
 def test_axis_angle_roundtrip(R):
     aa = rot.matrix_to_axis_angle(R)
     assert torch.allclose(rot.axis_angle_to_matrix(aa), R, atol=1e-9)

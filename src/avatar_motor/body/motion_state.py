@@ -147,21 +147,18 @@ def canonical_transform(x0: torch.Tensor) -> Transform:
 
 
 def apply_transform(x: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """x' = R x + t applied to every spatial part of states (..., T, 267); R, t have shape (..., 3, 3), (..., 3)."""
-    u = unpack(x)
-    Rf = R[..., None, :, :]  # broadcast over frames
-    tf = t[..., None, :]
-    root_pos = (Rf @ u.root_pos[..., None])[..., 0] + tf
-    root_rot = Rf @ u.root_rot
-    joints = torch.einsum("...ab,...jb->...ja", Rf, u.joints) + tf[..., None, :]
-    vel = torch.einsum("...ab,...jb->...ja", Rf, u.velocities)
-    out = x.clone()
+    """x' = R x + t applied to every spatial part of states (..., T, 267); R, t have shape (..., 3, 3), (..., 3).
+    The root rotation's 6D channels are its first two columns, so they are rotated as vectors:
+    R @ Gram-Schmidt(a, b) = Gram-Schmidt(R a, R b) for a rotation R, in a few tensor ops (this
+    runs three times per segment)."""
     lead = x.shape[:-1]
-    out[..., SLICES["root_pos"]] = root_pos
-    out[..., SLICES["root_rot"]] = rot.matrix_to_6d(root_rot)
-    out[..., SLICES["joints"]] = joints.reshape(*lead, 66)
-    out[..., SLICES["velocities"]] = vel.reshape(*lead, 66)
-    return out
+    # (..., T, 47, 3): the root location, the root rotation's two columns, the joint locations
+    # and velocities, as 3-vectors; rows 0 and 3..24 are points, moved by the translation too
+    V = torch.cat((x[..., :9], x[..., SLICES["joints"].start:]), -1).reshape(*lead, 47, 3)
+    V = V @ R[..., None, :, :].transpose(-1, -2)
+    t = t[..., None, None, :]
+    V = torch.cat((V[..., :1, :] + t, V[..., 1:3, :], V[..., 3:25, :] + t, V[..., 25:, :]), -2).reshape(*lead, 141)
+    return torch.cat((V[..., :9], x[..., 9:SLICES["joints"].start], V[..., 9:]), -1)
 
 
 def canonicalize(states: torch.Tensor) -> tuple[torch.Tensor, Transform]:

@@ -47,6 +47,7 @@ def _move_frames(x0: torch.Tensor, u, R: torch.Tensor, t: torch.Tensor) -> torch
 
 
 _LEGS = [tuple(JOINT_INDEX[f"{side}_{j}"] for j in ("hip", "knee", "ankle", "foot")) for side in ("left", "right")]
+assert not set(PARENTS) & {leg[3] for leg in _LEGS}  # solve_body places the feet as leaves
 
 
 def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch.Tensor,
@@ -138,14 +139,19 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         ankle_local = G_knee.transpose(-1, -2) @ G_ankle
         G_hip, G_knee = R_a @ G_hip, R_a @ R_b @ G_knee
         G_ankle = G_knee @ ankle_local
-        p_ankle = P[:, :, hip] + (G_hip @ off[:, :, knee, :, None])[..., 0] + (G_knee @ off[:, :, ankle, :, None])[..., 0]
+        p_knee = P[:, :, hip] + (G_hip @ off[:, :, knee, :, None])[..., 0]
+        p_ankle = p_knee + (G_knee @ off[:, :, ankle, :, None])[..., 0]
         bone = (G_ankle @ off[:, :, foot, :, None])[..., 0]
         G_ankle = rot.rotation_between(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G_ankle
         local = local.clone()  # the foot joints keep their local rotations
         local[:, :, [j - 1 for j in hip]] = G[:, :, [PARENTS[j] for j in hip]].transpose(-1, -2) @ G_hip
         local[:, :, [j - 1 for j in knee]] = G_hip.transpose(-1, -2) @ G_knee
         local[:, :, [j - 1 for j in ankle]] = G_knee.transpose(-1, -2) @ G_ankle
-    J, _ = forward_kinematics(root, u.root_rot, local, off)
+        # FK of the new rotations: only the legs below the hips moved (the feet are leaves)
+        J = P.clone()
+        J[:, :, knee + ankle + foot] = torch.cat((p_knee, p_ankle, p_ankle + (G_ankle @ off[:, :, foot, :, None])[..., 0]), 2)
+    else:
+        J, _ = forward_kinematics(root, u.root_rot, local, off)
     if follow is not None:
         # the rest of the body above the ground too: a rolling or falling body rests on its back or
         # head, it does not sink (the legs are above it already); lifted per frame, pose unchanged
