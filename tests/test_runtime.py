@@ -294,13 +294,36 @@ def test_presets_follow_table_a1():
     assert set(IMPULSE_PRESETS) == names
     from avatar_motor.body.skeleton import JOINT_INDEX, MIRROR
     # the kicks (retuned): the kicking leg's knee, ankle and foot, up and forward; mirror images
-    assert IMPULSE_PRESETS["right_kick"][0] == [JOINT_INDEX[f"right_{j}"] for j in ("knee", "ankle", "foot")]
-    assert IMPULSE_PRESETS["left_kick"][0] == [MIRROR[j] for j in IMPULSE_PRESETS["right_kick"][0]]
-    assert IMPULSE_PRESETS["left_kick"][1] == IMPULSE_PRESETS["right_kick"][1] == (0.0, 0.5, 0.5)
+    P = IMPULSE_PRESETS
+    assert P["right_kick"].joints == [JOINT_INDEX[f"right_{j}"] for j in ("knee", "ankle", "foot")]
+    assert P["left_kick"].joints == [MIRROR[j] for j in P["right_kick"].joints]
+    assert P["left_kick"].velocity == P["right_kick"].velocity == (0.0, 0.5, 0.5)
     # the roll (retuned): the upper trunk dives with the head, shoulders and elbows
-    assert JOINT_INDEX["spine3"] in IMPULSE_PRESETS["forward_roll"][0] and IMPULSE_PRESETS["forward_roll"][1] == (0.0, -0.5, 0.5)
+    assert JOINT_INDEX["spine3"] in P["forward_roll"].joints and P["forward_roll"].velocity == (0.0, -0.5, 0.5)
     # the others as in the table
-    assert IMPULSE_PRESETS["back_flip"] == ([JOINT_INDEX["head"]], (0.0, 0.0, -1.0))
+    assert (P["back_flip"].joints, P["back_flip"].velocity) == ([JOINT_INDEX["head"]], (0.0, 0.0, -1.0))
+    # the acrobatics start from a stance; the run keeps the body's momentum
+    assert [n for n in sorted(P) if P[n].stance] == ["back_flip", "forward_roll", "left_kick", "right_kick"]
+
+
+def test_an_acrobatic_preset_takes_the_bodys_horizontal_momentum_away(motor):
+    from avatar_motor.body.motion_state import SLICES, velocities_of
+    moving = torch.tensor([1.2, -0.3, 0.4])  # a walking body (and some vertical motion, which stays)
+    x = standing_state()
+    x[SLICES["velocities"]] = moving.repeat(22)
+    for preset, stance in (("right_kick", True), ("forward_run", False)):
+        crowd = Crowd(motor, seed=0)
+        i = crowd.spawn(x.clone())
+        crowd.impulse(i, preset)
+        batch = crowd.prepare(10**6)
+        p = IMPULSE_PRESETS[preset]
+        others = [j for j in range(22) if j not in p.joints]
+        after = velocities_of(batch.x0[0]) + batch.impulse_velocity[0]
+        if stance:  # every joint the preset does not push is left with the vertical motion only
+            assert torch.allclose(after[others], torch.tensor([0.0, -0.3, 0.0], dtype=torch.float64).expand(len(others), 3), atol=1e-6)
+        else:
+            assert torch.equal(batch.impulse_velocity[0, others], torch.zeros(len(others), 3, dtype=torch.float64))
+        assert not crowd.avatars[i].pending_stance
 
 
 @pytest.mark.parametrize("ext", ["bvh", "npz", "glb"])

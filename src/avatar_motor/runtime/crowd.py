@@ -20,7 +20,8 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
-from ..body.motion_state import FPS, SLICES, STATE_DIM, Transform, canonical_transform, apply_transform, pack
+from ..body.motion_state import (FPS, SLICES, STATE_DIM, Transform, apply_transform, canonical_transform, pack,
+                                 velocities_of)
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
 from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
@@ -34,20 +35,28 @@ def _joints(*names: str) -> list[int]:
     return [JOINT_INDEX[n] for n in names]
 
 
+@dataclass(frozen=True)
+class ImpulsePreset:
+    joints: list[int]
+    velocity: tuple[float, float, float]  # body frame (X left, Y up, Z forward), Table A1's units
+    # the body's horizontal momentum is taken away with the push (every joint's velocity loses the
+    # body's mean horizontal velocity): a kick, flip or roll starts from a planted stance
+    stance: bool = False
+
+
 # PRIMAL supplementary Table A1, body-centric (X left, Y up, Z forward). The table's velocities
 # are per-frame displacements (PRIMAL trains on them, use_metric_velocity=false): x 30 fps = m/s.
-# Retuned at that scale on a base that learnt DeepMimic's clips (eval impulses, 45 states;
-# docs/deepmimic.md): the kicks raise the foot as well (the table's knee and ankle pushed only forward read as
-# a stride: the avatar ran off, 0-6 % kicks; with the foot up and forward too, 49-64 % upright
-# kicks; pushed harder up, (0, 0.75, 0.5), the avatar is thrown over instead).
-IMPULSE_PRESETS: dict[str, tuple[list[int], tuple[float, float, float]]] = {
-    "left_kick": (_joints("left_knee", "left_ankle", "left_foot"), (0.0, 0.5, 0.5)),
-    "right_kick": (_joints("right_knee", "right_ankle", "right_foot"), (0.0, 0.5, 0.5)),
-    "forward_run": (_joints("pelvis", "neck", "left_shoulder", "right_shoulder"), (0.0, 0.0, 1.0)),
-    "back_flip": (_joints("head"), (0.0, 0.0, -1.0)),
-    # retuned: the upper trunk (neck, spine3) dives with the head, shoulders and elbows (49 -> 78 %)
-    "forward_roll": (_joints("head", "neck", "spine3", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow"),
-                     (0.0, -0.5, 0.5)),
+# Retuned at that scale on a base that learnt DeepMimic's clips (eval impulses; docs/deepmimic.md):
+# the kicks raise the foot as well, the roll dives with the upper trunk, and the acrobatics start
+# from a stance: from a walking state the push alone read as a stride (failed kicks began at
+# 1.2 m/s, successful ones at 0.1 m/s)
+IMPULSE_PRESETS: dict[str, ImpulsePreset] = {
+    "left_kick": ImpulsePreset(_joints("left_knee", "left_ankle", "left_foot"), (0.0, 0.5, 0.5), stance=True),
+    "right_kick": ImpulsePreset(_joints("right_knee", "right_ankle", "right_foot"), (0.0, 0.5, 0.5), stance=True),
+    "forward_run": ImpulsePreset(_joints("pelvis", "neck", "left_shoulder", "right_shoulder"), (0.0, 0.0, 1.0)),
+    "back_flip": ImpulsePreset(_joints("head"), (0.0, 0.0, -1.0), stance=True),
+    "forward_roll": ImpulsePreset(_joints("head", "neck", "spine3", "left_shoulder", "right_shoulder", "left_elbow",
+                                          "right_elbow"), (0.0, -0.5, 0.5), stance=True),
 }
 IMPULSE_SCALE = 30.0
 MAX_FORCE = 5000.0  # N: a force command above this is a mistake (a 400 N s push over one frame is 12,000 N: use an impulse)
@@ -144,6 +153,7 @@ class AvatarState:
     v_goal: torch.Tensor | None = None  # (3,) world m/s
     facing_goal: torch.Tensor | None = None  # (3,) world unit
     pending_velocity: torch.Tensor | None = None  # (22, 3) world m/s to add at the next segment
+    pending_stance: bool = False  # ... after taking away the body's horizontal momentum (ImpulsePreset.stance)
     # one adaptor steers an avatar at a time (a label or a target: the latest command replaces the
     # other): its index in the crowd's adaptors, the label's index in its labels, its strength
     adaptor: int | None = None
@@ -334,6 +344,7 @@ class Crowd:
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
         a.past, a.shown_pull = [], None
         a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
+        a.pending_stance = False
         a.near_target = False
         a.teacher_segments = 0
         a.forces, a.springs, a.balls, a.shown_balls, a.pending_balls = [], [], [], [], []
@@ -469,12 +480,13 @@ class Crowd:
             raise ValueError(f"unknown impulse preset {preset!r}; presets are {sorted(IMPULSE_PRESETS)}")
         if not math.isfinite(scale):
             raise ValueError("impulse scale must be finite")
-        joints, v = IMPULSE_PRESETS[preset]
+        p = IMPULSE_PRESETS[preset]
         a = self._get(i)
-        vw = _body_to_world(a) @ (torch.tensor(v) * IMPULSE_SCALE * scale)
+        vw = _body_to_world(a) @ (torch.tensor(p.velocity) * IMPULSE_SCALE * scale)
         dv = torch.zeros(22, 3)
-        dv[joints] = vw
+        dv[p.joints] = vw
         a.teacher_segments = self.cfg.impulse_teacher
+        a.pending_stance |= p.stance  # taken from the state the segment starts at (prepare)
         self._add_velocity(a, dv)
 
     def push(self, i: int, joint: int | str, velocity, frame: str = "world") -> None:
@@ -689,7 +701,10 @@ class Crowd:
         for k, a in enumerate(avs):
             if a.pending_velocity is not None:  # only set with a cut: this segment starts at the cut
                 dv[k] = a.pending_velocity.double()
-                a.pending_velocity = None
+                if a.pending_stance:
+                    moving = velocities_of(x0[k]).mean(0) * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+                    dv[k] -= moving
+                a.pending_velocity, a.pending_stance = None, False
                 impulse[k] = True
             a.planned = self._plan(a)
         N = self.motor.net.cfg.frames
