@@ -39,3 +39,19 @@ def test_eval_impulses_reports_unpushed_acrobatics_and_draws_each_preset(tmp_pat
     assert rows == ["none", *IMPULSE_PRESETS]
     for preset in rows:
         assert (tmp_path / f"imp_{preset}.png").stat().st_size > 1000
+
+
+def test_physics_scene_options_parse_and_name_what_is_wrong():
+    from avatar_motor.cli import _parse_ball, _parse_obstacle, _parse_tilt
+    assert _parse_ball("0,1.3,3:0,0,-10:2") == ([0.0, 1.3, 3.0], [0.0, 0.0, -10.0], 2.0)
+    assert _parse_ball("0,1.3,3:0,0,-10") == ([0.0, 1.3, 3.0], [0.0, 0.0, -10.0], 1.0)  # 1 kg by default
+    assert _parse_obstacle("0,1.5:2,0.2,0.15:30") == ([0.0, 1.5], [2.0, 0.2, 0.15], 30.0)
+    assert _parse_obstacle("0,1.5:2,0.2,0.15") == ([0.0, 1.5], [2.0, 0.2, 0.15], 0.0)
+    assert _parse_tilt("10,0") == ([10.0, 0.0], [0.0, 0.0])
+    assert _parse_tilt("10,0:0,2") == ([10.0, 0.0], [0.0, 2.0])
+    for parse, text, message in ((_parse_ball, "0,1.3,3", "use X,Y,Z:VX,VY,VZ"), (_parse_ball, "0,1.3:0,0,-10", "position"),
+                                 (_parse_ball, "0,1,3:0,0,-10:heavy", "mass"), (_parse_obstacle, "0,1.5:2,0.2", "size"),
+                                 (_parse_obstacle, "0,1.5:2,0.2,0.1:0:9", "use X,Z:SX,SY,SZ"), (_parse_tilt, "10", "tilt"),
+                                 (_parse_tilt, "10,0:0,2:1", "use AX,AZ")):
+        with pytest.raises(ValueError, match=message):
+            parse(text)

@@ -247,31 +247,36 @@ def _parse_force(text: str):
     return joint, _floats(parts[1], 3, f"--force {text!r} force"), _floats(parts[2], 1, f"--force {text!r} seconds")[0]
 
 
+def _number_groups(text: str, option: str, usage: str, groups: list[tuple[str, int, list | None]]) -> list[list[float]]:
+    """Colon-separated groups of comma-separated numbers (the --ball, --obstacle and --ground
+    syntax): one list per group of `groups` (name, how many numbers, default; None: required,
+    the required ones first), each checked by _floats."""
+    parts = text.split(":")
+    if not sum(d is None for _, _, d in groups) <= len(parts) <= len(groups):
+        raise ValueError(f"{option} {text!r}: use {usage}")
+    return [_floats(parts[k], n, f"{option} {text!r} {name}") if k < len(parts) else default
+            for k, (name, n, default) in enumerate(groups)]
+
+
 def _parse_ball(text: str):
     """X,Y,Z:VX,VY,VZ[:MASS] (world m, m/s, kg) -> (position, velocity, mass)."""
-    parts = text.split(":")
-    if len(parts) not in (2, 3):
-        raise ValueError(f"--ball {text!r}: use X,Y,Z:VX,VY,VZ[:MASS], e.g. 0,1.3,3:0,0,-10:2@1.5")
-    mass = _floats(parts[2], 1, f"--ball {text!r} mass")[0] if len(parts) == 3 else 1.0
-    return _floats(parts[0], 3, f"--ball {text!r} position"), _floats(parts[1], 3, f"--ball {text!r} velocity"), mass
+    pos, vel, mass = _number_groups(text, "--ball", "X,Y,Z:VX,VY,VZ[:MASS], e.g. 0,1.3,3:0,0,-10:2@1.5",
+                                    [("position", 3, None), ("velocity", 3, None), ("mass", 1, [1.0])])
+    return pos, vel, mass[0]
 
 
 def _parse_obstacle(text: str):
     """X,Z:SX,SY,SZ[:YAW] (world m, m, degrees) -> (centre, size, yaw)."""
-    parts = text.split(":")
-    if len(parts) not in (2, 3):
-        raise ValueError(f"--obstacle {text!r}: use X,Z:SX,SY,SZ[:YAW], e.g. 0,1.5:2,0.2,0.15")
-    yaw = _floats(parts[2], 1, f"--obstacle {text!r} yaw")[0] if len(parts) == 3 else 0.0
-    return _floats(parts[0], 2, f"--obstacle {text!r} centre"), _floats(parts[1], 3, f"--obstacle {text!r} size"), yaw
+    centre, size, yaw = _number_groups(text, "--obstacle", "X,Z:SX,SY,SZ[:YAW], e.g. 0,1.5:2,0.2,0.15",
+                                       [("centre", 2, None), ("size", 3, None), ("yaw", 1, [0.0])])
+    return centre, size, yaw[0]
 
 
 def _parse_tilt(text: str):
     """AX,AZ[:PX,PZ] (degrees about x and z, pivot m) -> (tilt, pivot)."""
-    parts = text.split(":")
-    if len(parts) not in (1, 2):
-        raise ValueError(f"--ground {text!r}: use AX,AZ[:PX,PZ], e.g. 10,0 or 10,0:0,2")
-    pivot = _floats(parts[1], 2, f"--ground {text!r} pivot") if len(parts) == 2 else [0.0, 0.0]
-    return _floats(parts[0], 2, f"--ground {text!r} tilt"), pivot
+    tilt, pivot = _number_groups(text, "--ground", "AX,AZ[:PX,PZ], e.g. 10,0 or 10,0:0,2",
+                                 [("tilt", 2, None), ("pivot", 2, [0.0, 0.0])])
+    return tilt, pivot
 
 
 def _parse_goal(text: str):
