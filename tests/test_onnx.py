@@ -1,10 +1,9 @@
 """The ONNX Runtime backend: the exported graph computes the network, and the runtime on it
 generates the same motion as on torch."""
-import numpy as np
 import pytest
 import torch
 
-from avatar_motor.model.onnx import OnnxDenoiser, export_file, onnx_denoiser
+from avatar_motor.model.onnx import OnnxDenoiser, export_bytes, export_file, onnx_denoiser, quantize_int8
 from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
 
 from .conftest_models import shipped_or_tiny
@@ -34,7 +33,7 @@ def test_the_runtime_on_onnxruntime_makes_the_same_motion(tmp_path):
     motor = shipped_or_tiny(tmp_path)
     out = {}
     for backend in ("torch", "onnxruntime"):
-        crowd = Crowd(motor, RuntimeConfig(backend=backend), seed=3)
+        crowd = Crowd(motor, RuntimeConfig(backend=backend, int8_weights=False), seed=3)
         i = crowd.spawn()
         crowd.set_goal(i, (1.0, 0.2))
         out[backend] = torch.stack([crowd.step_segment()[i] for _ in range(2)])
@@ -43,3 +42,46 @@ def test_the_runtime_on_onnxruntime_makes_the_same_motion(tmp_path):
     assert float(d.max()) < 1e-3  # float32 arithmetic in another order, through 8 denoising steps
     with pytest.raises(ValueError, match="backend must be one of"):
         Crowd(motor, RuntimeConfig(backend="tensorrt"))
+
+
+def test_int8_weights_make_a_smaller_graph_that_computes_nearly_the_same(tmp_path):
+    """The runtime's default graph: MatMul weights as int8. Its output stays within a few percent
+    of the float32 graph's (measured quality: docs/onnx.md), with the same inputs and output."""
+    motor = shipped_or_tiny(tmp_path)
+    net, cfg = motor.net, motor.net.cfg
+    f32 = export_bytes(net)
+    i8 = quantize_int8(f32)
+    assert len(i8) < 0.5 * len(f32)
+    import onnx
+    ops = [n.op_type for n in onnx.load_from_string(i8).graph.node if "MatMul" in n.op_type]
+    assert "MatMulInteger" in ops and ops[-1] == "MatMul"  # the output projection stays float32
+    a, b = OnnxDenoiser(f32), OnnxDenoiser(i8)
+    assert [i.name for i in a.session.get_inputs()] == [i.name for i in b.session.get_inputs()]
+    g = torch.Generator().manual_seed(1)
+    B = 16
+    args = (torch.randint(0, motor.diffusion.T, (B,), generator=g), torch.randn(B, cfg.frames, cfg.state_dim, generator=g),
+            torch.randn(B, cfg.state_dim, generator=g))
+    if cfg.latent:
+        args = (*args, torch.randn(B, cfg.latent, generator=g))
+    ref, out = a(*args), b(*args)
+    rel = float((out - ref).abs().mean() / ref.pow(2).mean().sqrt())
+    print(f"int8 vs float32 weights: mean absolute error {rel:.3f} of the output's RMS")
+    assert 0 < rel < 0.1
+    assert torch.equal(out, b(*args))  # deterministic
+    assert onnx_denoiser(net, True) is onnx_denoiser(net, True) and onnx_denoiser(net, True) is not onnx_denoiser(net)
+    from avatar_motor.cli import main
+    assert main(["export-onnx", "--model", str(motor.path), "--int8", "--out", str(tmp_path / "q.onnx")]) == 0
+    assert (tmp_path / "q.onnx").read_bytes() == i8
+
+
+def test_the_default_runtime_runs_int8_weights_and_repeats_itself_per_seed(tmp_path):
+    motor = shipped_or_tiny(tmp_path)
+    assert RuntimeConfig().backend == "onnxruntime" and RuntimeConfig().int8_weights
+    runs = []
+    for _ in range(2):
+        crowd = Crowd(motor, RuntimeConfig(), seed=5)
+        i = crowd.spawn()
+        crowd.set_goal(i, (1.0, 0.0))
+        runs.append(torch.stack([crowd.step_segment()[i] for _ in range(2)]))
+    assert torch.equal(runs[0], runs[1])
+    assert crowd.sampler.net is onnx_denoiser(motor.net, True)

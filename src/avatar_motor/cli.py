@@ -366,9 +366,10 @@ def _export_onnx(a) -> int:
     from .model.onnx import export_file
 
     motor = load_checkpoint(a.model)
-    path = export_file(motor.net, a.out)
+    path = export_file(motor.net, a.out, a.int8)
     cfg = motor.net.cfg
-    print(f"{path}: {motor.name} as ONNX (opset 17, float32): inputs t (B,) int64, x_t (B, {cfg.frames}, {cfg.state_dim}) "
+    weights = "int8 weights (dynamic quantization), float32 inputs and output" if a.int8 else "float32"
+    print(f"{path}: {motor.name} as ONNX (opset 17, {weights}): inputs t (B,) int64, x_t (B, {cfg.frames}, {cfg.state_dim}) "
           f"float32, x0 (B, {cfg.state_dim}) float32"
           + (f", z (B, {cfg.latent}) float32 (N(0, I) at every step)" if cfg.latent else "")
           + f"; output x0_hat (B, {cfg.frames}, {cfg.state_dim}); sampler {motor.sampler['kind']} "
@@ -947,6 +948,8 @@ def build_parser() -> argparse.ArgumentParser:
     ox = sub.add_parser("export-onnx", help="the model's network as an ONNX file (engines: Unity Sentis, Unreal NNE)")
     ox.add_argument("--model", default=str(DEFAULT_MODEL))
     ox.add_argument("--out", required=True, help="the .onnx file to write")
+    ox.add_argument("--int8", action="store_true", help="MatMul weights as int8 (what the runtime runs by default); "
+                    "the engine must support ONNX's dynamic quantization operators")
     ox.set_defaults(func=_export_onnx)
 
     g = sub.add_parser("generate", help="generate motion to a .bvh, .glb, .npz or .fbx file")

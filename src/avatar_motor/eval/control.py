@@ -192,6 +192,10 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
     return {k: v / segments for k, v in acc.items()}
 
 
+def _backend_name(cfg: RuntimeConfig) -> str:
+    return cfg.backend if cfg.backend == "torch" else f"onnxruntime {'int8' if cfg.int8_weights else 'float32'}"
+
+
 def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256,
           runtime: RuntimeConfig | None = None, baseline: Motor | None = None, range_of_motion=None) -> str:
     """runtime: the configuration measured as the default (its backend also runs the crowd and
@@ -206,11 +210,11 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     steps = default.steps or motor.sampler["steps"]
     label = f"{'DDPM' if motor.sampler['kind'] == 'ddpm' else motor.sampler['kind']} {steps}"
     settings = [
-        ("DDPM 50", base, RuntimeConfig(steps=50, stages=()), False),
-        ("DDPM 50 + proc. + CBG", base, RuntimeConfig(steps=50), True),
+        ("DDPM 50", base, RuntimeConfig(steps=50, stages=(), int8_weights=False), False),
+        ("DDPM 50 + proc. + CBG", base, RuntimeConfig(steps=50, int8_weights=False), True),
         ("DDPM 8 + proc. + CBG (torch)", base, RuntimeConfig(steps=8, backend="torch"), True),
-        ("DDPM 8 + proc. + CBG (onnxruntime)", base, RuntimeConfig(steps=8, backend="onnxruntime"), True),
-        (f"{label} + proc. + CBG ({default.backend})", motor, default, True),
+        ("DDPM 8 + proc. + CBG (onnxruntime float32)", base, RuntimeConfig(steps=8, backend="onnxruntime", int8_weights=False), True),
+        (f"{label} + proc. + CBG ({_backend_name(default)})", motor, default, True),
     ]
     other = "onnxruntime" if default.backend == "torch" else "torch"
     try:
@@ -218,6 +222,9 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
         settings.append((f"{label} + proc. + CBG ({other})", motor, dataclasses.replace(default, backend=other), True))
     except ImportError:
         pass
+    if default.backend == "onnxruntime":  # the same graph with the other precision of its weights
+        flipped = dataclasses.replace(default, int8_weights=not default.int8_weights)
+        settings.append((f"{label} + proc. + CBG ({_backend_name(flipped)})", motor, flipped, True))
     rows = []
     for name, m, cfg, goal in settings:
         t = _time_segments(m, cfg, 1, segments, goal, seed)
@@ -225,11 +232,12 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     ref = rows[2 if default.backend == "torch" else 3][1]["total"]
     out = [f"bench: {motor.name} (baseline {base.name}), {torch.get_num_threads()} threads, one avatar, "
            f"ms per 0.5-s segment (mean of {segments})",
-           f"{'setting':42s} {'canon.':>7s} {'diffusion':>9s} {'post':>7s} {'total':>7s} {'vs DDPM 8':>10s}"]
+           f"{'setting':50s} {'canon.':>7s} {'diffusion':>9s} {'post':>7s} {'total':>7s} {'vs DDPM 8':>10s}"]
     for name, t in rows:
-        out.append(f"{name:42s} {t['canonicalize'] * 1e3:7.2f} {t['diffusion'] * 1e3:9.1f} {t['post'] * 1e3:7.2f} "
+        out.append(f"{name:50s} {t['canonicalize'] * 1e3:7.2f} {t['diffusion'] * 1e3:9.1f} {t['post'] * 1e3:7.2f} "
                    f"{t['total'] * 1e3:7.1f} {t['total'] / ref:9.2f}x")
-    out.append(f"(vs DDPM 8: ratio to today's 8-step DDPM with guidance and processing on {default.backend}, this run)")
+    out.append(f"(vs DDPM 8: ratio to the 8-step DDPM before few-step sampling, with guidance and processing, on "
+               f"{'torch' if default.backend == 'torch' else 'onnxruntime float32'}, this run)")
     out.append("(step 2, the condition embedding, runs inside the first network call and is part of 'diffusion')")
     # crowd throughput: a batch keeps real time when a 0.5 s segment is generated in < 0.5 s
     out.append("crowd (default settings with guidance): avatars, ms per segment per batch, real-time factor")

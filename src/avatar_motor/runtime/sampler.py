@@ -93,7 +93,8 @@ class Sampler:
             raise ValueError(f"runtime backend must be one of {BACKENDS}, got {cfg.backend!r}")
         # the base network as ONNX Runtime runs it (an adaptor's avatars use torch; so does a persona
         # network, whose persona conditions the exported graph does not take)
-        self.net = onnx_denoiser(motor.net) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona else motor.net
+        self.net = (onnx_denoiser(motor.net, cfg.int8_weights) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona
+                    else motor.net)
         # a few-step model's teacher for the segments after an impulse preset (impulse_teacher)
         self.teacher = None
         if self.kind != "ddpm" and cfg.impulse_teacher > 0:
@@ -101,7 +102,7 @@ class Sampler:
             # the teacher's rows are encoded and decoded with this model's normalisation, which
             # distillation keeps from its base
             if base is not None and torch.equal(base.norm.mean, motor.norm.mean) and torch.equal(base.norm.std, motor.norm.std):
-                self.teacher = onnx_denoiser(base.net) if cfg.backend == "onnxruntime" else base.net
+                self.teacher = onnx_denoiser(base.net, cfg.int8_weights) if cfg.backend == "onnxruntime" else base.net
             elif base is not None:
                 log.warning("impulse presets run on %s itself: its base normalises states otherwise", motor.name)
 
