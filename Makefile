@@ -79,7 +79,7 @@ models: data
 	$(AM) distill --config configs/emdm.json
 	$(AM) ship runs/emdm/checkpoint models/primal-bandai-emdm --steps 1
 	$(AM) adapt --config configs/actions.json
-	$(AM) ship runs/adapt-actions/adaptor models/primal-bandai-actions
+	$(AM) ship runs/adapt-actions/adaptor models/primal-bandai-actions --scale 2.5
 	$(AM) adapt --config configs/styles.json
 	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles
 	$(AM) adapt --config configs/reach.json

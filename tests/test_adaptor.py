@@ -555,3 +555,35 @@ def test_adapt_resumes_exactly_from_its_saved_state(tmp_path):
     with pytest.raises(ValueError, match="another adaptor run.*kind"):
         adapt(cfg("parts", kind="omni"), progress=False)
     assert (tmp_path / "parts" / "train_state" / "state.safetensors").read_bytes() == before
+
+
+def test_an_adaptor_carries_the_scale_its_avatars_get_by_default(tmp_path):
+    """adaptor.json's scale (set by `ship --scale`) is what a label or target without a scale
+    gets, in the runtime, the server and the welcome message; a broken value is named."""
+    from avatar_motor.model.adaptor import ship_adaptor
+    from avatar_motor.runtime.crowd import Crowd
+    from avatar_motor.serve.world import World
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    m = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
+    save_adaptor(tmp_path / "trained", m, motor.name)
+    assert load_adaptor(tmp_path / "trained", motor.net).default_scale == 1.0  # as trained
+    ship_adaptor(tmp_path / "trained", tmp_path / "shipped", motor, "card", scale=2.5)
+    ad = load_adaptor(tmp_path / "shipped", motor.net)
+    assert ad.default_scale == 2.5
+    crowd = Crowd(motor, seed=0, adaptors=[ad])
+    i = crowd.spawn()
+    crowd.set_target(i, (1.0, 2.0))
+    assert crowd.avatars[i].control_scale == 2.5
+    crowd.set_target(i, (1.0, 2.0), 0.5)  # a scale given is kept
+    assert crowd.avatars[i].control_scale == 0.5
+    world = World(motor, adaptors=[ad])
+    j = world.apply({"type": "spawn"})["avatar"]
+    world.apply({"type": "target", "avatar": j, "position": [2.0, 1.0]})
+    assert world.crowd.avatars[j].control_scale == 2.5
+    meta = json.loads((tmp_path / "shipped" / "adaptor.json").read_text())
+    for bad in (-1, 11, "strong", None):
+        meta["scale"] = bad
+        (tmp_path / "shipped" / "adaptor.json").write_text(json.dumps(meta))
+        with pytest.raises(ValueError, match="scale must be a number"):
+            load_adaptor(tmp_path / "shipped", motor.net)

@@ -137,8 +137,9 @@ class Scene:
         """One of the impulse presets: left_kick, right_kick, forward_run, back_flip, forward_roll."""
         self.crowd.impulse(avatar, preset, scale)
 
-    def label(self, avatar: int, label: str | None, scale: float = 1.0) -> None:
-        """An action or style label of the shipped adaptors (Model.labels); None releases it."""
+    def label(self, avatar: int, label: str | None, scale: float | None = None) -> None:
+        """An action or style label of the shipped adaptors (Model.labels); None releases it.
+        scale: the adaptor's strength (None: the one its card measures)."""
         self.crowd.set_label(avatar, label, scale)
 
     def persona(self, avatar: int, description: str | None) -> None:
@@ -146,8 +147,8 @@ class Scene:
         persona`), with a persona model (am.load("models/primal-bandai-persona")); None releases it."""
         self.crowd.set_persona(avatar, description)
 
-    def target(self, avatar: int, position, scale: float = 1.0) -> None:
-        """Walk to the ground point (x, z) with the reaching adaptor; None releases it."""
+    def target(self, avatar: int, position, scale: float | None = None) -> None:
+        """Walk to the ground point (x, z) with the reaching adaptor; None releases it. scale: as for label."""
         self.crowd.set_target(avatar, position, scale)
 
     def physics(self, avatar: int, on: bool = True) -> None:

@@ -652,7 +652,7 @@ def _ship(a) -> int:
     if (src / "adaptor.json").exists():
         base = load_checkpoint(a.base)
         fp = base_fingerprint(base.net)
-        ship_adaptor(src, dst, base, card or _stub_card(dst.name, f"adaptor trained on {base.name} (weights {fp})"))
+        ship_adaptor(src, dst, base, card or _stub_card(dst.name, f"adaptor trained on {base.name} (weights {fp})"), a.scale)
         print(f"{dst}: float16 adaptor on {base.name} ({fp})")
         return 0
     m = load_checkpoint(src)
@@ -797,10 +797,12 @@ def _eval_adaptation(a) -> int:
     caches = _caches(a.data)
     init, shapes, _ = initial_states(caches, a.n, a.seed)
     cfg = _runtime_config(a)
+    scales = ", ".join(f"{n} {a.adaptor_scale if a.adaptor_scale is not None else ad.default_scale:g}" for n, ad in ads.items())
+    guided = any((a.adaptor_scale if a.adaptor_scale is not None else ad.default_scale) > 1 for ad in ads.values())
     if a.ecmd == "reach":
         rows, paths = eval_reach(motor, methods, init, shapes, a.seconds or 2.0, a.seed, cfg, a.adaptor_scale)
         print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s, "
-                          f"adaptor scale {a.adaptor_scale:g}",
+                          f"adaptor scale {scales}",
                           rows, ["min_dist_m", "final_dist_m", "ASR", "ANCR"]))
         if a.png:
             target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
@@ -840,9 +842,9 @@ def _eval_adaptation(a) -> int:
         print(f"no real reference for the evaluator: {e}")
     rows, rollouts = eval_actions(motor, methods, encs, init, shapes, classes, seconds, a.seed, cfg, a.adaptor_scale)
     print(format_rows(f"actions (Table A3): {a.n} initial states x {len(classes)} labels x {seconds:g} s, "
-                      f"adaptor scale {a.adaptor_scale:g}"
+                      f"adaptor scale {scales}"
                       + (f" (guidance against {'the nearest other label' if a.guidance == 'nearest' else 'the null label'})"
-                         if a.adaptor_scale > 1 else "") + f", R-precision by {len(encs)} evaluator(s)",
+                         if guided else "") + f", R-precision by {len(encs)} evaluator(s)",
                       rows, ["R_precision", "R_min", "R_max", "ASR", "ANCR"]))
     print(format_confusion(rows, classes))
     if a.png:
@@ -919,6 +921,8 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("dst", help="the shipped folder, e.g. models/primal-bandai-actions")
     sh.add_argument("--base", default=str(BASE_MODEL), help="the base an adaptor or few-step model was trained on")
     sh.add_argument("--steps", type=int, help="a few-step model's default steps (default: as trained)")
+    sh.add_argument("--scale", type=float, help="an adaptor's default control scale, the one its card measures "
+                    "(what a label or target without one gets; default: the source's, 1 for a trained adaptor)")
     sh.set_defaults(func=_ship)
 
     sv = sub.add_parser("serve", help="the web studio and the WebSocket stream (docs/protocol.md)")
@@ -968,8 +972,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--shape", help="body shape: 6 numbers, " + ", ".join(["stature", "leg_length", "torso_length",
                    "arm_length", "shoulder_width", "hip_width"]) + " (0 = an average adult; one step: 10 cm of "
                    "stature, +5 %% of a length, +8 %% of a width)")
-    g.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
-                   help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the guidance weight (a second, batched network pass; see --guidance)")
+    g.add_argument("--adaptor-scale", "--label-scale", type=float,
+                   help="adaptor strength for labels and targets: 0 = base model, 1 = as trained, above 1 the guidance weight (a second, batched network pass; see --guidance); default: each adaptor's own (its card's)")
     g.add_argument("--target", action="append", help="X,Z[@SECONDS] world target with a reaching adaptor")
     g.add_argument("--physics", action="store_true", help="physics mode (DROP): the body is simulated, the model its control")
     g.add_argument("--force", action="append", help="JOINT:FX,FY,FZ:SECONDS[@SECONDS] world newtons held on a joint (physics; repeatable)")
@@ -1021,8 +1025,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="actions: how many evaluators (seeds --seed, --seed + 1, ...) read the rollouts; "
                             "R-precision is their mean, with min and max")
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
-        e.add_argument("--adaptor-scale", "--label-scale", type=float, default=1.0,
-                       help="adaptor strength: 0 = base model, 1 = as trained, above 1 the guidance weight (see --guidance)")
+        e.add_argument("--adaptor-scale", "--label-scale", type=float,
+                       help="adaptor strength: 0 = base model, 1 = as trained, above 1 the guidance weight (see --guidance); "
+                            "default: each adaptor's own (its card's)")
         e.add_argument("--n", type=int, default=45)
         e.add_argument("--seconds", type=float)
         _add_runtime_args(e)

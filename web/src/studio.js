@@ -347,7 +347,8 @@ function buildLabels(adaptors) {
     const b = document.createElement("button");
     b.textContent = l ?? "none";
     b.dataset.label = l ?? "";
-    b.onclick = () => send({ type: "label", avatar: state.selected, label: l, scale: Number($("scale").value) });
+    // no scale until the slider is moved: the server gives each adaptor its own (its card's)
+    b.onclick = () => send({ type: "label", avatar: state.selected, label: l, ...(state.scaleSet ? { scale: Number($("scale").value) } : {}) });
     return b;
   };
   for (const a of withLabels) {
@@ -364,6 +365,10 @@ function buildLabels(adaptors) {
   const reach = (adaptors || []).find((a) => a.control === "target");
   $("magnet-mode").textContent = reach ? `the reaching adaptor (${reach.name}) walks there` : "a velocity goal walks there";
 }
+$("scale").oninput = () => {
+  state.scaleSet = true;
+  $("scale-value").textContent = $("scale").value;
+};
 // ---------------------------------------------------------------- personas (a persona model)
 // who each avatar is, in words; the crowd button spawns distinct people of distinct builds in a row
 const PERSONAS = [

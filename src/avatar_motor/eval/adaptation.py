@@ -163,7 +163,7 @@ def _rollout(motor: Motor, adaptor, init, shapes, frames: int, setup, seed: int,
 
 
 def eval_actions(motor: Motor, adaptors: dict, encoders: list, init, shapes, classes: list[str], seconds: float = 3.0,
-                 seed: int = 0, cfg: RuntimeConfig | None = None, scale: float = 1.0) -> tuple[list[dict], dict]:
+                 seed: int = 0, cfg: RuntimeConfig | None = None, scale: float | None = None) -> tuple[list[dict], dict]:
     """Rows of Table A3 (a method named "base" with adaptor None is the unadapted model), read by
     each of `encoders` (see r_precisions), and the rollouts {method: {label: (n, T, 267)}}."""
     cfg = cfg or RuntimeConfig()
@@ -183,7 +183,7 @@ def eval_actions(motor: Motor, adaptors: dict, encoders: list, init, shapes, cla
 
 
 def eval_reach(motor: Motor, adaptors: dict, init, shapes, seconds: float = 2.0, seed: int = 0,
-               cfg: RuntimeConfig | None = None, scale: float = 1.0) -> tuple[list[dict], dict]:
+               cfg: RuntimeConfig | None = None, scale: float | None = None) -> tuple[list[dict], dict]:
     """Rows of Table A4 and the pelvis paths {method: (8 targets, n, T, 2)} in each initial state's
     own frame (x left, z forward), where the targets are TARGETS."""
     from ..body.motion_state import canonical_transform

@@ -19,6 +19,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -66,6 +67,9 @@ class AdaptedDenoiser(nn.Module):
         self.cfg = cfg
         self.guidance = "nearest"  # what a scale above 1 steers away from: "nearest" or "null" (see _negative)
         self.name = "adaptor"  # what a client shows it as: its folder's name once loaded
+        # the control scale its avatars get when a command names none: the one its card measures
+        # (adaptor.json "scale", set by `ship --scale`; 1 = as trained)
+        self.default_scale = 1.0
         # which base weights this adaptor starts from, taken before any training changes them
         self.base_fingerprint = base_fingerprint(base)
         # fine-tuning trains the base itself: on a copy, so the shared base model (the runtime's
@@ -189,14 +193,17 @@ def save_adaptor(folder: str | Path, model: AdaptedDenoiser, base_name: str, inf
     return replace_folder(folder, fill, _adaptor_complete)
 
 
-def ship_adaptor(src: str | Path, dst: str | Path, base, card: str) -> Path:
+def ship_adaptor(src: str | Path, dst: str | Path, base, card: str, scale: float | None = None) -> Path:
     """Copy a trained adaptor (on the loaded base Motor `base`) into a shippable one: float16
-    weights, its card, named for its folder."""
+    weights, its card, named for its folder; `scale` its avatars' default control scale (None:
+    the source's)."""
     src = Path(src)
     model = load_adaptor(src, base.net, base.name)
     meta = json.loads((src / "adaptor.json").read_text())
     info = {k: v for k, v in meta.items() if k not in ("format", "adaptor", "base_model", "base_fingerprint")}
     info["name"] = Path(dst).name
+    if scale is not None:
+        info["scale"] = float(scale)
     return save_adaptor(dst, model, base.name, info, card, half=True)
 
 
@@ -231,6 +238,10 @@ def load_adaptor(folder: str | Path, base: Denoiser, base_name: str | None = Non
                          f"unexpected {sorted(set(weights) - expected)[:3]})")
     # runs/adapt-actions/adaptor is named for its run, models/primal-bandai-actions for itself
     model.name = str(meta.get("name") or (folder.resolve().parent.name if folder.name == "adaptor" else folder.name))
+    scale = meta.get("scale", 1.0)
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and 0 <= scale <= 10):
+        raise ValueError(f"{folder}: adaptor.json's scale must be a number in [0, 10], got {scale!r}; the adaptor is corrupt")
+    model.default_scale = float(scale)
     return model.eval()
 
 

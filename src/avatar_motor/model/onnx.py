@@ -62,8 +62,10 @@ def export_bytes(net: Denoiser) -> bytes:
 
 def quantize_int8(model: bytes) -> bytes:
     """The graph with its MatMul weights as int8, one scale per output channel, except the last
-    MatMul (the output projection), which stays float32: it halves the error at no cost in time
-    (docs/onnx.md)."""
+    MatMul (the output projection), which stays float32: it halves the error at no cost in time.
+    The activations entering each int8 MatMul are quantized per row (every token of every
+    avatar on its own scale, `_per_row_activations`), so an avatar's result does not depend on
+    the others in its batch, as in float32 (docs/onnx.md)."""
     _require("onnxruntime")
     import tempfile
 
@@ -78,9 +80,67 @@ def quantize_int8(model: bytes) -> bytes:
             src, dst = Path(d) / "float32.onnx", Path(d) / "int8.onnx"
             src.write_bytes(model)
             quantize_dynamic(src, dst, weight_type=QuantType.QInt8, per_channel=True, nodes_to_exclude=last)
-            return dst.read_bytes()
+            return _per_row_activations(dst.read_bytes())
     finally:
         logging.getLogger().removeFilter(hint)
+
+
+def _per_row_activations(model: bytes) -> bytes:
+    """ONNX Runtime's dynamic quantization takes one scale for a whole activation tensor, the
+    whole batch: one avatar's motion then changed with the others beside it (the crowd's rows
+    must be independent: tests/test_runtime.py). Each DynamicQuantizeLinear is replaced by a
+    symmetric quantization of every row (last axis) on its own scale max|x| / 127, stored as
+    uint8 around the zero point 128; the MatMul's scale product takes 1 for it and the row
+    scales multiply its float output, before any bias (so ONNX Runtime still fuses the integer
+    MatMul with its weight scales)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    m = onnx.load_from_string(model)
+    g = m.graph
+    consumers: dict[str, list] = {}
+    for n in g.node:
+        for x in n.input:
+            consumers.setdefault(x, []).append(n)
+    g.initializer.extend([helper.make_tensor("row_q/127", TensorProto.FLOAT, [], [127.0]),
+                          helper.make_tensor("row_q/-127", TensorProto.FLOAT, [], [-127.0]),
+                          helper.make_tensor("row_q/128", TensorProto.FLOAT, [], [128.0]),
+                          helper.make_tensor("row_q/eps", TensorProto.FLOAT, [], [1e-8]),
+                          helper.make_tensor("row_q/1", TensorProto.FLOAT, [], [1.0]),
+                          helper.make_tensor("row_q/zero_point", TensorProto.UINT8, [], [128])])
+    nodes, rescale = [], {}  # rescale: a scale-product Mul's output -> the row scales to apply after it
+    for n in g.node:
+        if n.op_type != "DynamicQuantizeLinear":
+            nodes.append(n)
+            continue
+        x, (q, scale, zero) = n.input[0], n.output
+        p = f"row_q/{n.name or x}/"
+        nodes += [helper.make_node("Abs", [x], [p + "abs"]),
+                  helper.make_node("ReduceMax", [p + "abs"], [p + "max"], axes=[-1], keepdims=1),
+                  helper.make_node("Max", [p + "max", "row_q/eps"], [p + "range"]),
+                  helper.make_node("Div", [p + "range", "row_q/127"], [scale]),
+                  helper.make_node("Div", [x, scale], [p + "scaled"]),
+                  helper.make_node("Round", [p + "scaled"], [p + "rounded"]),
+                  helper.make_node("Clip", [p + "rounded", "row_q/-127", "row_q/127"], [p + "clipped"]),
+                  helper.make_node("Add", [p + "clipped", "row_q/128"], [p + "shifted"]),
+                  helper.make_node("Cast", [p + "shifted"], [q], to=TensorProto.UINT8),
+                  helper.make_node("Identity", ["row_q/zero_point"], [zero])]
+        for product in consumers[scale]:  # Mul(activation scale, weight scales)
+            if product.op_type != "Mul" or any(c.op_type != "Mul" for c in consumers[product.output[0]]):
+                raise ValueError(f"unexpected quantized graph around {n.name}: update _per_row_activations")
+            product.input[list(product.input).index(scale)] = "row_q/1"
+            for out in consumers[product.output[0]]:  # Mul(integer MatMul as float, scales)
+                rescale[out.output[0]] = scale
+    final = []
+    for n in nodes:
+        final.append(n)
+        for k, out in enumerate(n.output):
+            if out in rescale:
+                n.output[k] = out + "/per_tensor"
+                final.append(helper.make_node("Mul", [out + "/per_tensor", rescale[out]], [out]))
+    del g.node[:]
+    g.node.extend(final)
+    return m.SerializeToString()
 
 
 class _DropMessage(logging.Filter):

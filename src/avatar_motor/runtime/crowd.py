@@ -447,21 +447,23 @@ class Crowd:
             a.persona = description.strip()
         self._changed(a)
 
-    def set_label(self, i: int, label: str | None, scale: float = 1.0) -> None:
+    def set_label(self, i: int, label: str | None, scale: float | None = None) -> None:
         """Action label of the adaptor (None releases); scale 0 = base model, 1 = as trained, above 1
-        guidance of that weight, against the adaptor's `guidance` (AdaptedDenoiser._negative)."""
+        guidance of that weight, against the adaptor's `guidance` (AdaptedDenoiser._negative);
+        None: the adaptor's default_scale."""
         a = self._get(i)
         if label is None:
             if a.label is not None:
                 a.label, a.adaptor = None, None
         else:
             k = self._adaptor_for("label", label)
+            scale = self.adaptors[k].default_scale if scale is None else scale
             _check_scale(scale)
             a.adaptor, a.label, a.target = k, self.adaptors[k].cfg.labels.index(label), None
             a.control_scale = float(scale)
         self._changed(a)
 
-    def set_target(self, i: int, position, scale: float = 1.0) -> None:
+    def set_target(self, i: int, position, scale: float | None = None) -> None:
         """World (x, z) target of a reaching adaptor (None releases); re-expressed in every
         segment's canonical frame, so a moving target is followed. scale as for labels: below 1
         the base model's continuity weighs more (measured: slower, less sliding)."""
@@ -471,6 +473,7 @@ class Crowd:
                 a.target, a.adaptor = None, None
         else:
             k = self._adaptor_for("target")
+            scale = self.adaptors[k].default_scale if scale is None else scale
             _check_scale(scale)
             a.target, a.label, a.adaptor = validate_vector(position, 2, "target (x, z)"), None, k
             a.control_scale = float(scale)

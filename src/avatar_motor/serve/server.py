@@ -312,7 +312,8 @@ class Server:
 
     def _adaptor_info(self) -> list[dict]:
         """What each loaded adaptor controls, so a client can offer its labels (or a target)."""
-        return [{"name": ad.name, "control": ad.cfg.control, "labels": list(ad.cfg.labels), "kind": ad.cfg.kind}
+        return [{"name": ad.name, "control": ad.cfg.control, "labels": list(ad.cfg.labels), "kind": ad.cfg.kind,
+                 "scale": ad.default_scale}
                 for ad in self.world.crowd.adaptors]
 
     async def _handle(self, client: Client, text: str) -> None:

@@ -137,7 +137,7 @@ class World:
         i = self._avatar(cmd)
         pos = cmd.get("position")
         if any(ad.cfg.control == "target" for ad in self.crowd.adaptors):  # a reaching adaptor walks there by itself
-            self.crowd.set_target(i, pos, float(cmd.get("scale", 1.0)))
+            self.crowd.set_target(i, pos, _scale(cmd))
             return
         if pos is None:
             self.targets.pop(i, None)
@@ -149,7 +149,7 @@ class World:
     def _cmd_label(self, cmd):
         i = self._avatar(cmd)
         try:
-            self.crowd.set_label(i, cmd["label"], float(cmd.get("scale", 1.0)))
+            self.crowd.set_label(i, cmd["label"], _scale(cmd))
         except ValueError as e:
             raise CommandError(str(e)) from None
 
@@ -443,3 +443,8 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: 
     keep = frames_to_keep(t1, 3)
     return cap, keep, (f"a segment takes {1e3 * t1:.0f} ms for 1 avatar, {1e3 * tp:.0f} ms for {probe}: "
                        f"this machine keeps {cap} avatars in real time; a command keeps {keep} queued frame(s)")
+
+
+def _scale(cmd: dict) -> float | None:
+    """A label or target command's adaptor scale; None (not given): the adaptor's own default."""
+    return None if cmd.get("scale") is None else float(cmd["scale"])
