@@ -81,7 +81,7 @@ models: data
 	$(AM) adapt --config configs/actions.json
 	$(AM) ship runs/adapt-actions/adaptor models/primal-bandai-actions --scale 2.5
 	$(AM) adapt --config configs/styles.json
-	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles
+	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles --scale 2.5
 	$(AM) adapt --config configs/reach.json
 	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach
 	$(AM) train --config configs/persona.json
