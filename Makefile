@@ -83,7 +83,7 @@ models: data
 	$(AM) adapt --config configs/styles.json
 	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles --scale 2.5
 	$(AM) adapt --config configs/reach.json
-	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach
+	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach --scale 2.5
 	$(AM) train --config configs/persona.json
 	$(AM) train --config configs/persona-2.json
 	$(AM) ship runs/persona-2/checkpoint models/primal-bandai-persona
