@@ -77,12 +77,12 @@ def test_int8_weights_make_a_smaller_graph_that_computes_nearly_the_same(tmp_pat
     assert (tmp_path / "q.onnx").read_bytes() == i8
 
 
-def test_the_default_runtime_runs_int8_weights_and_repeats_itself_per_seed(tmp_path):
+def test_the_runtime_on_int8_weights_repeats_itself_per_seed(tmp_path):
     motor = shipped_or_tiny(tmp_path)
-    assert RuntimeConfig().backend == "onnxruntime" and RuntimeConfig().int8_weights
+    assert RuntimeConfig().backend == "onnxruntime" and not RuntimeConfig().int8_weights  # float32 by default
     runs = []
     for _ in range(2):
-        crowd = Crowd(motor, RuntimeConfig(), seed=5)
+        crowd = Crowd(motor, RuntimeConfig(int8_weights=True), seed=5)
         i = crowd.spawn()
         crowd.set_goal(i, (1.0, 0.0))
         runs.append(torch.stack([crowd.step_segment()[i] for _ in range(2)]))

@@ -414,8 +414,7 @@ def test_physics_mode_in_the_crowd(tmp_path):
     motor = tiny_motor(tmp_path)
 
     def run(seed):
-        # float32 weights: where the throw below lands was set up on this random model's float32 motion
-        crowd = Crowd(motor, RuntimeConfig(int8_weights=False), seed)
+        crowd = Crowd(motor, RuntimeConfig(), seed)
         i = crowd.spawn()
         crowd.set_physics(i, True)
         frames = [crowd.next_frames()[i] for _ in range(5)]

@@ -952,7 +952,7 @@ def build_parser() -> argparse.ArgumentParser:
     ox = sub.add_parser("export-onnx", help="the model's network as an ONNX file (engines: Unity Sentis, Unreal NNE)")
     ox.add_argument("--model", default=str(DEFAULT_MODEL))
     ox.add_argument("--out", required=True, help="the .onnx file to write")
-    ox.add_argument("--int8", action="store_true", help="MatMul weights as int8 (what the runtime runs by default); "
+    ox.add_argument("--int8", action="store_true", help="MatMul weights as int8 (what --runtime int8_weights=true runs); "
                     "the engine must support ONNX's dynamic quantization operators")
     ox.set_defaults(func=_export_onnx)
 

@@ -6,9 +6,8 @@ segment, `x0` (B, 267) float32 normalised initial state, and for an EMDM generat
 float32 its latent, drawn from N(0, I) at every step; output `x0_hat` (B, frames, 267) float32,
 the network's estimate of the clean normalised segment. B is dynamic.
 
-`quantize_int8` makes the graph with int8 weights that the runtime runs by default (ONNX
-Runtime's dynamic quantization: each MatMul's weights stored as int8 per output channel, its
-activations quantized at every call); same inputs and output.
+`quantize_int8` makes the graph with int8 weights that `RuntimeConfig.int8_weights` runs (an
+option: docs/onnx.md), with the same inputs and output.
 """
 from __future__ import annotations
 

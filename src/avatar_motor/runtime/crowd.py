@@ -130,9 +130,10 @@ class RuntimeConfig:
     # for one avatar 65 ms vs 99 ms (diffusion 47 vs 82), 16 avatars 396 vs 451 ms, reaction 50
     # vs 96 ms; eval realism reads the same on both (network outputs within 1e-4)
     backend: str = "onnxruntime"
-    # the onnxruntime backend runs the network with int8 weights (model/onnx.quantize_int8), in
-    # about half the time at the same measured quality (docs/onnx.md); False: float32 weights
-    int8_weights: bool = True
+    # the onnxruntime backend runs the network with int8 weights (model/onnx.quantize_int8) instead
+    # of float32: off, as it bought no time for one avatar and little for crowds at a small cost
+    # in quality (docs/onnx.md)
+    int8_weights: bool = False
     # a new goal this close to the one the latest segment was made for (m/s; rad of facing) only
     # updates the controls, without cutting the queued frames: a gamepad stick's jitter must not
     # regenerate (issue #26: a 30-60 Hz goal stream froze the avatar)
