@@ -178,7 +178,7 @@ def _resume(folder: Path, cfg: AdaptConfig, trainable: dict, ema: EMA, opt, gen:
         return 0, 0.0
     meta = json.loads((st / "state.json").read_text())
     recipe = _recipe(cfg)
-    changed = sorted(k for k in recipe if meta["recipe"].get(k) != recipe[k])
+    changed = sorted(k for k in recipe if meta.get("recipe", {}).get(k) != recipe[k])  # (a train run has none)
     if changed:
         raise ValueError(f"{folder} holds the state of another adaptor run (its {', '.join(changed)} differ from this "
                          "config's; a continued run may change only " + ", ".join(_MAY_CHANGE) + "): give this run "
