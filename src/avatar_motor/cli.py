@@ -797,8 +797,8 @@ def _eval_adaptation(a) -> int:
     caches = _caches(a.data)
     init, shapes, _ = initial_states(caches, a.n, a.seed)
     cfg = _runtime_config(a)
-    scales = ", ".join(f"{n} {a.adaptor_scale if a.adaptor_scale is not None else ad.default_scale:g}" for n, ad in ads.items())
-    guided = any((a.adaptor_scale if a.adaptor_scale is not None else ad.default_scale) > 1 for ad in ads.values())
+    scales = ", ".join(f"{n} {ad.scale_for(a.adaptor_scale):g}" for n, ad in ads.items())
+    guided = any(ad.scale_for(a.adaptor_scale) > 1 for ad in ads.values())
     if a.ecmd == "reach":
         rows, paths = eval_reach(motor, methods, init, shapes, a.seconds or 2.0, a.seed, cfg, a.adaptor_scale)
         print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s, "

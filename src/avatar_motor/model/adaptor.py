@@ -116,6 +116,10 @@ class AdaptedDenoiser(nn.Module):
             out[r] = out[r] + (s[r] - 1) * (out[r] - self._negative(t[r], x_t[r], x0[r], y[r], out[r]))
         return out
 
+    def scale_for(self, scale: float | None) -> float:
+        """The control scale a command gets: its own, or (None) this adaptor's default_scale."""
+        return self.default_scale if scale is None else scale
+
     def _negative(self, t, x_t, x0, y, cond: torch.Tensor) -> torch.Tensor:
         """What guidance steers away from: the null control (PRIMAL's Eq. 3), or with guidance
         "nearest" (label adaptors) the prediction of the other label nearest to this label's own

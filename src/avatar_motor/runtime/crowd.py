@@ -458,7 +458,7 @@ class Crowd:
                 a.label, a.adaptor = None, None
         else:
             k = self._adaptor_for("label", label)
-            scale = self.adaptors[k].default_scale if scale is None else scale
+            scale = self.adaptors[k].scale_for(scale)
             _check_scale(scale)
             a.adaptor, a.label, a.target = k, self.adaptors[k].cfg.labels.index(label), None
             a.control_scale = float(scale)
@@ -474,7 +474,7 @@ class Crowd:
                 a.target, a.adaptor = None, None
         else:
             k = self._adaptor_for("target")
-            scale = self.adaptors[k].default_scale if scale is None else scale
+            scale = self.adaptors[k].scale_for(scale)
             _check_scale(scale)
             a.target, a.label, a.adaptor = validate_vector(position, 2, "target (x, z)"), None, k
             a.control_scale = float(scale)
