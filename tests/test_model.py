@@ -173,6 +173,14 @@ def test_resume_is_exact(tmp_path, fixture_cache):
     assert (tmp_path / "b" / "loss.png").exists() and (tmp_path / "b" / "metrics.jsonl").exists()
 
 
+def test_a_checkpoint_before_the_first_logged_step_is_saved(tmp_path, fixture_cache):
+    from avatar_motor.train.trainer import Trainer
+    # found by a smoke run of `make models` with small budgets: the loss plot read a log not yet written
+    Trainer(_cfg(tmp_path / "a", fixture_cache, steps=3, checkpoint_every=1, log_every=25), progress=False).run()
+    assert load_checkpoint(tmp_path / "a" / "checkpoint").config["trained_steps"] == 3
+    assert len((tmp_path / "a" / "metrics.jsonl").read_text().splitlines()) == 1  # the last step's line
+
+
 def test_warm_start_takes_the_weights_and_checks_the_architecture(tmp_path, fixture_cache):
     from avatar_motor.train.trainer import Trainer
     Trainer(_cfg(tmp_path / "a", fixture_cache, steps=3), progress=False).run()

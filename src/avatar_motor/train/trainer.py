@@ -401,6 +401,8 @@ def plot_losses(log_path: Path, png: Path, keys=("loss", "simple", "fk", "fkv"))
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if not Path(log_path).exists():  # a checkpoint before the first logged step (checkpoint_every < log_every)
+        return
     rows = [json.loads(l) for l in Path(log_path).read_text().splitlines() if l.strip()]
     if not rows:
         return
