@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-8)
 WEB_DIST := src/avatar_motor/serve/static/dist/studio.js
 
-.PHONY: studio test install web chromium godot blender clean models data wheel
+.PHONY: studio test install web chromium godot blender clean models models-check data wheel
 
 install: $(STAMP)
 
@@ -95,3 +95,20 @@ models: data
 	$(AM) eval actions --adaptors styles=models/primal-bandai-styles --label-key style --data dataset-2 > runs/evals/styles.txt && cat runs/evals/styles.txt
 	$(AM) eval reach --adaptors reach=models/primal-bandai-reach > runs/evals/reach.txt && cat runs/evals/reach.txt
 	$(AM) eval persona > runs/evals/persona.txt && cat runs/evals/persona.txt
+
+# The recipe above run end to end in minutes: its commands (make -n) with budgets of a few steps
+# (tests/family-check.sed), in a scratch worktree of HEAD (its code, configs and models/, which
+# they overwrite), then the family it shipped driven as the studio drives it: the default model
+# with the shipped adaptors (a label, a style, a target), and the persona model. Checks that every
+# command runs and that each dependent ships on the new base; not the figures. Needs `make data`.
+CHECK_DIR ?= /tmp/avatar-motor-models-check
+CHECK_ENV = cd $(CHECK_DIR) && AVATAR_MOTOR_MODELS=$(CHECK_DIR)/models PYTHONPATH=$(CHECK_DIR)/src
+models-check: install
+	rm -rf $(CHECK_DIR) && git worktree prune && git worktree add -f --detach $(CHECK_DIR) HEAD
+	ln -s $(abspath $(VENV)) $(CHECK_DIR)/.venv
+	$(MAKE) -s -n -C $(CHECK_DIR) models RESUME=1 | sed -E -f tests/family-check.sed > $(CHECK_DIR)/check.sh
+	$(CHECK_ENV) bash -c 'mkdir -p runs/evals && bash -ex check.sh'
+	$(CHECK_ENV) $(abspath $(AM)) generate --seconds 3 --label bow@0 --label elderly@1 --target 1,1@2 --out runs/family.bvh
+	$(CHECK_ENV) $(abspath $(AM)) generate --model models/primal-bandai-persona --persona 'a weary old man' --out runs/persona.bvh
+	git worktree remove --force $(CHECK_DIR)
+	@echo "models-check: the recipe of make models ran end to end"
