@@ -101,3 +101,11 @@ def test_normalizer_roundtrip_and_validation():
     assert torch.equal(n2.mean, n.mean)
     with pytest.raises(ValueError):
         Normalizer.from_dict({"mean": [0.0] * 3, "std": [1.0] * 3})
+
+
+def test_horizontal_zeroes_the_vertical_axis_and_keeps_the_dtype():
+    from avatar_motor.body.motion_state import horizontal
+    v = torch.tensor([[1.5, -2.0, 3.0]], dtype=torch.float64)
+    h = horizontal(v)
+    assert h.dtype == torch.float64 and h.tolist() == [[1.5, 0.0, 3.0]]
+    assert horizontal(v.float()).dtype == torch.float32

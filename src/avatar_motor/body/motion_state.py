@@ -123,6 +123,14 @@ def body_mismatch(x: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     return (joints_of(x) - body_joints(x, offsets)).norm(dim=-1)
 
 
+_HORIZONTAL = torch.tensor([1.0, 0.0, 1.0])
+
+
+def horizontal(v: torch.Tensor) -> torch.Tensor:
+    """v (..., 3) in the ground plane: its vertical (y) component zeroed."""
+    return v * _HORIZONTAL.to(v.dtype)
+
+
 def facing_yaw(joints: torch.Tensor) -> torch.Tensor:
     """Yaw angle (radians, about +Y, 0 = facing +Z) of the body from its hips' left-right axis."""
     left = joints[..., _LH, :] - joints[..., _RH, :]

@@ -12,7 +12,7 @@ import torch
 from ..body.skeleton import JOINT_INDEX
 from ..data.cache import MotionCache
 from ..data.dataset import SegmentConfig, SegmentDataset
-from ..body.motion_state import FPS, joints_of
+from ..body.motion_state import FPS, horizontal, joints_of
 from ..model.checkpoint import Motor
 from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
 from ..runtime.guidance import facing_of
@@ -60,7 +60,7 @@ def control(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int =
             # mean joint velocity over each remaining second, horizontal, vs the goal
             v = (J[:, after + 1:] - J[:, after:-1]).mean(-2) * FPS  # (n, T, 3)
             g = g_world[:, None, :]
-            vel_err = float(((v - g) * torch.tensor([1.0, 0, 1.0])).norm(dim=-1).mean())
+            vel_err = float(horizontal(v - g).norm(dim=-1).mean())
             z, _ = facing_of(X[:, after:])
             r = g / g.norm(dim=-1, keepdim=True)
             dir_err = float((z - r).norm(dim=-1).mean())

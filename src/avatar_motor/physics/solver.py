@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import torch
 
 from ..body import rotations as rot
-from ..body.motion_state import FPS
+from ..body.motion_state import FPS, horizontal
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, NUM_JOINTS, PARENTS, forward_kinematics
 from . import environment, limits
 from .environment import FLAT, Environment
@@ -239,7 +239,6 @@ def com_pull(masses: torch.Tensor, x: torch.Tensor, goal: torch.Tensor, weight: 
     return c, t
 
 
-_HORIZONTAL = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
 
 
 def solve_global(bodies: Bodies, y: torch.Tensor, bones: torch.Tensor, ground: torch.Tensor, ranged: torch.Tensor,
@@ -254,11 +253,10 @@ def solve_global(bodies: Bodies, y: torch.Tensor, bones: torch.Tensor, ground: t
     if com is None:
         return torch.cholesky_solve(rhs, bodies.factor)
     c, t = com
-    horizontal = _HORIZONTAL.to(y.dtype)
-    u = torch.cholesky_solve(rhs + c[..., None] * (t * horizontal)[:, None], bodies.factor)
+    u = torch.cholesky_solve(rhs + c[..., None] * horizontal(t)[:, None], bodies.factor)
     z = torch.cholesky_solve(c[..., None], bodies.factor)  # (B, 22, 1) A^-1 c
     alpha = (c[..., None] * u).sum(1) / (1.0 + (c[..., None] * z).sum(1))  # (B, 3)
-    return u - z * (alpha * horizontal)[:, None]
+    return u - z * horizontal(alpha)[:, None]
 
 
 def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor, cands: Candidates,
@@ -281,7 +279,7 @@ def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor,
         out["range_of_motion"] = term(cfg.range_of_motion, it + shift)
     if com is not None:
         c, t = com
-        out["com_velocity"] = 0.5 * ((((c[..., None] * it).sum(1) - t) * _HORIZONTAL.to(it.dtype)) ** 2).sum(-1)
+        out["com_velocity"] = 0.5 * (horizontal((c[..., None] * it).sum(1) - t) ** 2).sum(-1)
     return out
 
 

@@ -21,7 +21,7 @@ import torch
 from ..body import rotations as rot
 from ..body.skeleton import JOINT_INDEX, JOINT_NAMES, SHAPE_DIM, forward_kinematics, rest_offsets, rest_positions
 from ..body.motion_state import (FPS, SLICES, STATE_DIM, Transform, apply_transform, canonical_transform, pack,
-                                 velocities_of)
+                                 horizontal, velocities_of)
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
 from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
@@ -709,7 +709,7 @@ class Crowd:
             if a.pending_velocity is not None:  # only set with a cut: this segment starts at the cut
                 dv[k] = a.pending_velocity.double()
                 if a.pending_stance:
-                    moving = velocities_of(x0[k]).mean(0) * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+                    moving = horizontal(velocities_of(x0[k]).mean(0))
                     dv[k] -= moving
                 a.pending_velocity, a.pending_stance = None, False
                 impulse[k] = True

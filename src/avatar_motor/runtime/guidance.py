@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from ..body.skeleton import JOINT_INDEX
-from ..body.motion_state import SLICES
+from ..body.motion_state import SLICES, horizontal
 
 _LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
 _J0 = SLICES["joints"].start
@@ -45,7 +45,7 @@ def path_loss_and_grad(x: torch.Tensor, x0: torch.Tensor, v_goal: torch.Tensor) 
 
     c = centroid(x)
     t = centroid(x0)[:, None] + v_goal[:, None] * (torch.arange(1, N + 1, dtype=x.dtype) / FPS)[None, :, None]
-    d = (c - t) * torch.tensor([1.0, 0.0, 1.0], dtype=x.dtype)
+    d = horizontal(c - t)
     loss = (d**2).sum(-1).mean(-1)
     g = 2 * d / (23.0 * N)  # (B, N, 3) per point
     grad = torch.zeros_like(x)

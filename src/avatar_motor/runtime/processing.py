@@ -12,7 +12,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, JOINT_NAMES, PARENTS, forward_kinematics
-from ..body.motion_state import FPS, SLICES, facing_yaw, joints_of, pack, unpack
+from ..body.motion_state import FPS, SLICES, facing_yaw, horizontal, joints_of, pack, unpack
 
 
 def _backward_velocities(x0: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -79,8 +79,8 @@ def _above_ground(d: torch.Tensor, start: torch.Tensor, bone: torch.Tensor) -> t
     for a d that points straight down)."""
     d = rot.normalize(d)
     lowest = (-start[..., 1] / bone.norm(dim=-1).clamp_min(1e-6)).clamp(-1.0, 1.0)  # smallest y of the unit direction
-    flat = d * torch.tensor([1.0, 0.0, 1.0], dtype=d.dtype)
-    flat = torch.where(flat.norm(dim=-1, keepdim=True) > 1e-6, flat, bone * torch.tensor([1.0, 0.0, 1.0], dtype=d.dtype))
+    flat = horizontal(d)
+    flat = torch.where(flat.norm(dim=-1, keepdim=True) > 1e-6, flat, horizontal(bone))
     flat = rot.normalize(flat) * (1 - lowest**2).clamp_min(0).sqrt()[..., None]
     lifted = flat + lowest[..., None] * torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype)
     return torch.where((d[..., 1] < lowest)[..., None], lifted, d)
@@ -101,7 +101,7 @@ def _pinned(start: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
     keep = torch.cat((torch.ones_like(w[:, :1]), 1 - w), 1)  # what of point k stays: all of the start
     M = torch.tril(carry * keep[:, None, :])  # (B, N + 1, N + 1), rows sum to 1
     held = (M @ P)[:, 1:]  # (B, N, 3)
-    shift = (held - goal[:, :, 0]) * torch.tensor([1.0, 0.0, 1.0], dtype=goal.dtype)
+    shift = horizontal(held - goal[:, :, 0])
     return goal + shift[:, :, None]
 
 
@@ -309,7 +309,7 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
         back = back + torch.diff(turned.to(seg.dtype), dim=1, prepend=torch.zeros_like(turned[:, :1]))
     on = torch.as_tensor(yaw, dtype=seg.dtype).expand(B)[:, None]
     R = rot.yaw_matrix((back * c.amin(-1) * on).cumsum(1))  # (B, N, 3, 3): each frame's turn back
-    pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
+    pivot = horizontal(u.joints[:, :, 0])  # (B, N, 3)
     t = pivot - (R @ pivot[..., None])[..., 0]  # turn about the pelvis
     feet_now = torch.einsum("bnij,bnfj->bnfi", R, P[:, 1:]) + t[:, :, None]  # the feet after the turn back
     step = (feet_now - torch.cat((P[:, :1], feet_now[:, :-1]), 1))[..., [0, 2]]  # (B, N, 2, 2)
@@ -342,7 +342,7 @@ def turn_toward(x0: torch.Tensor, seg: torch.Tensor, goal_yaw: torch.Tensor, max
         total = total * where.to(seg.dtype)
     yaw = total[:, None] * free.cumsum(1) / free.sum(1, keepdim=True)  # 0 -> total over the segment
     R = rot.yaw_matrix(yaw)  # (B, N, 3, 3)
-    pivot = u.joints[:, :, 0] * torch.tensor([1.0, 0.0, 1.0], dtype=seg.dtype)  # (B, N, 3)
+    pivot = horizontal(u.joints[:, :, 0])  # (B, N, 3)
     return _move_frames(x0, u, R, pivot - (R @ pivot[..., None])[..., 0]), yaw
 
 
