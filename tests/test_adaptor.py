@@ -444,11 +444,17 @@ def test_feet_matching_compares_only_the_ankles_and_feet():
 
 
 def _yaw_locks_seen(monkeypatch) -> list:
-    """Records, per segment, which bodies foot locking was asked to hold against yaw."""
-    from avatar_motor.runtime import stages
+    """Records, per segment, which bodies foot locking is asked to hold against yaw (the stages'
+    context says it; they may run as a traced graph, which calls no Python function)."""
+    from avatar_motor.runtime.stages import StageContext
     seen = []
-    real = stages.lock_feet
-    monkeypatch.setattr(stages, "lock_feet", lambda *a, **k: seen.append(k["yaw"].tolist()) or real(*a, **k))
+    real = StageContext.of.__func__
+
+    def of(cls, *a, **k):
+        ctx = real(cls, *a, **k)
+        seen.append(ctx.lock_yaw.tolist())
+        return ctx
+    monkeypatch.setattr(StageContext, "of", classmethod(of))
     return seen
 
 

@@ -727,3 +727,50 @@ def test_the_runtime_hands_the_frames_shown_to_the_join(motor):
     assert torch.equal(batch.past[0], torch.stack(shown[-PAST - 1:-1]).double())
     crowd.reset(i)  # stood up elsewhere: the past is not its own
     assert not bool(crowd.prepare(1).has_past[0])
+
+
+def test_traced_stages_equal_the_python_stages_on_other_batches(tmp_path):
+    """runtime/stage_graph.py: a graph traced on one batch gives, bit for bit, what the Python
+    stages give on batches of other sizes and contents (goals, facing, an impulse, a past or not)."""
+    from avatar_motor.runtime import stage_graph
+    from avatar_motor.runtime.crowd import RuntimeConfig
+    from avatar_motor.runtime.stages import StageContext, run_stages
+    crowd = Crowd(shipped_or_tiny(tmp_path), RuntimeConfig(backend="torch", trace_stages=False), seed=3)
+    for _ in range(5):
+        crowd.spawn()
+    crowd.set_goal(1, velocity=(1.0, 0.3), facing=(1.0, 0.0))
+    crowd.set_goal(3, facing=(0.0, -1.0))
+    seen = []
+    real = crowd._stages
+    crowd._stages = lambda ctx, seg: (seen.append((StageContext(**{**ctx.__dict__, "turned": None}), seg)),
+                                      real(ctx, seg))[1]
+    crowd.step_segment()
+    crowd.impulse(2, "forward_run")
+    crowd.step_segment()
+    ctx, seg = seen[-1]
+    assert ctx.any_facing and ctx.past is not None and not bool(ctx.match_velocity.all()) and bool(ctx.steered.any())
+
+    def rows(c: StageContext, r: list[int]) -> StageContext:
+        pick = lambda t: None if t is None else t[torch.tensor(r)]  # noqa: E731
+        return StageContext(pick(c.x0), pick(c.offsets), pick(c.steered), pick(c.facing), pick(c.has_facing),
+                            pick(c.lock_where), pick(c.lock_yaw), pick(c.match_velocity), pick(c.past),
+                            pick(c.has_past), any_facing=c.any_facing)
+
+    cfg = crowd.cfg
+    for past in (True, False):  # the runtime's stages, and those of physics mode's candidates (no past)
+        c = ctx if past else StageContext(**{**ctx.__dict__, "past": None, "has_past": None})
+        graph = stage_graph.trace_stages(cfg, rows(c, [3]), seg[[3]])  # traced on one avatar
+        for r in ([0, 1, 2, 3, 4], [2], [4, 1], [1, 1, 0]):
+            want = run_stages(cfg, rows(c, r), seg[r])
+            got = graph(*stage_graph._tensors(rows(c, r), seg[r]))
+            assert torch.equal(got, want), (past, r, float((got - want).abs().max()))
+    # the runtime with traced stages streams the same frames as without
+    frames = {}
+    for traced in (False, True):
+        cr = Crowd(shipped_or_tiny(tmp_path), RuntimeConfig(backend="torch", trace_stages=traced), seed=5)
+        for _ in range(3):
+            cr.spawn()
+        cr.set_goal(0, velocity=(0.8, 0.0), facing=(0.0, 1.0))
+        frames[traced] = [cr.step_segment() for _ in range(3)]
+    for a, b in zip(frames[False], frames[True]):
+        assert all(torch.equal(a[i], b[i]) for i in a)

@@ -183,6 +183,7 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
         texts = [d for lab in sorted(DESCRIPTIONS) for d in DESCRIPTIONS[lab]]
         for k, i in enumerate(ids):
             crowd.set_persona(i, texts[k * 7 % len(texts)])
+    crowd.warm()
     crowd.step_segment()  # warm-up
     acc: dict[str, float] = {}
     for _ in range(segments):
@@ -209,11 +210,13 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
         raise ValueError(f"bench baseline {base.name} is not a DDPM base; pass --baseline models/primal-bandai")
     steps = default.steps or motor.sampler["steps"]
     label = f"{'DDPM' if motor.sampler['kind'] == 'ddpm' else motor.sampler['kind']} {steps}"
+    # the DDPM rows are the runtime before few-step sampling: the network in float32, the stages in Python
+    before = RuntimeConfig(int8_weights=False, trace_stages=False)
     settings = [
-        ("DDPM 50", base, RuntimeConfig(steps=50, stages=(), int8_weights=False), False),
-        ("DDPM 50 + proc. + CBG", base, RuntimeConfig(steps=50, int8_weights=False), True),
-        ("DDPM 8 + proc. + CBG (torch)", base, RuntimeConfig(steps=8, backend="torch"), True),
-        ("DDPM 8 + proc. + CBG (onnxruntime float32)", base, RuntimeConfig(steps=8, backend="onnxruntime", int8_weights=False), True),
+        ("DDPM 50", base, dataclasses.replace(before, steps=50, stages=()), False),
+        ("DDPM 50 + proc. + CBG", base, dataclasses.replace(before, steps=50), True),
+        ("DDPM 8 + proc. + CBG (torch)", base, dataclasses.replace(before, steps=8, backend="torch"), True),
+        ("DDPM 8 + proc. + CBG (onnxruntime float32)", base, dataclasses.replace(before, steps=8, backend="onnxruntime"), True),
         (f"{label} + proc. + CBG ({_backend_name(default)})", motor, default, True),
     ]
     other = "onnxruntime" if default.backend == "torch" else "torch"
@@ -225,6 +228,10 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     if default.backend == "onnxruntime":  # the same graph with the other precision of its weights
         flipped = dataclasses.replace(default, int8_weights=not default.int8_weights)
         settings.append((f"{label} + proc. + CBG ({_backend_name(flipped)})", motor, flipped, True))
+    # the post-processing stages traced into one graph (the same values) or run from Python
+    flipped = dataclasses.replace(default, trace_stages=not default.trace_stages)
+    settings.append((f"{label} + proc. + CBG ({_backend_name(default)}, stages "
+                     f"{'traced' if flipped.trace_stages else 'in Python'})", motor, flipped, True))
     rows = []
     for name, m, cfg, goal in settings:
         t = _time_segments(m, cfg, 1, segments, goal, seed)
@@ -236,8 +243,8 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     for name, t in rows:
         out.append(f"{name:50s} {t['canonicalize'] * 1e3:7.2f} {t['diffusion'] * 1e3:9.1f} {t['post'] * 1e3:7.2f} "
                    f"{t['total'] * 1e3:7.1f} {t['total'] / ref:9.2f}x")
-    out.append(f"(vs DDPM 8: ratio to the 8-step DDPM before few-step sampling, with guidance and processing, on "
-               f"{'torch' if default.backend == 'torch' else 'onnxruntime float32'}, this run)")
+    out.append(f"(vs DDPM 8: ratio to the 8-step DDPM before few-step sampling, with guidance and processing (stages in "
+               f"Python), on {'torch' if default.backend == 'torch' else 'onnxruntime float32'}, this run)")
     out.append("(step 2, the condition embedding, runs inside the first network call and is part of 'diffusion')")
     # crowd throughput: a batch keeps real time when a 0.5 s segment is generated in < 0.5 s
     out.append("crowd (default settings with guidance): avatars, ms per segment per batch, real-time factor")
@@ -296,6 +303,7 @@ def physics_frames_per_second(motor: Motor, cfg: RuntimeConfig, avatars: int, se
     """Frames each avatar in physics mode gets per second of wall time, standing and walking
     (half the avatars with a velocity goal), after one warm-up segment."""
     crowd = Crowd(motor, cfg, seed, range_of_motion=range_of_motion)
+    crowd.warm()
     ids = [crowd.spawn(position=(1.5 * k, 0.0)) for k in range(avatars)]
     for k, i in enumerate(ids):
         crowd.set_physics(i, True)

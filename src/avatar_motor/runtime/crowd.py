@@ -28,6 +28,7 @@ from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
 from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
 from .processing import PAST, continuous_past, physical_faults
 from .sampler import Sampler, _subset
+from .stage_graph import run_traced_stages
 from .stages import DEFAULT_STAGES, PhysicsJob, SegmentBatch, StageContext, check_stages, run_stages
 
 
@@ -134,6 +135,9 @@ class RuntimeConfig:
     # of float32: off, as it bought no time for one avatar and little for crowds at a small cost
     # in quality (docs/onnx.md)
     int8_weights: bool = False
+    # the post-processing stages run as a TorchScript graph traced from them (stage_graph.py):
+    # the same kernels on the same values, with less time spent dispatching them from Python
+    trace_stages: bool = True
     # a new goal this close to the one the latest segment was made for (m/s; rad of facing) only
     # updates the controls, without cutting the queued frames: a gamepad stick's jitter must not
     # regenerate (issue #26: a 30-60 Hz goal stream froze the avatar)
@@ -792,9 +796,9 @@ class Crowd:
             # is within metres of the origin, and float64 made it 1.3-1.6x slower (bench, one run)
             p = torch.tensor(plain)
             sub_p = batch if every else _subset(batch, p)
-            seg = run_stages(self.cfg, StageContext(x0c[p].float(), offsets[p].float(), sub_p, Rt[p].float(),
-                                                    pastc[p].float(), has_past[p]),
-                             seg_all[:len(plain)].float())
+            seg = self._stages(StageContext.of(self.cfg, x0c[p].float(), offsets[p].float(), sub_p, Rt[p].float(),
+                                               pastc[p].float(), has_past[p]),
+                               seg_all[:len(plain)].float())
             # 4 back to world
             seg_w[p] = apply_transform(seg.double(), tf.R[p], tf.t[p]).float()
         t3 = time.perf_counter()
@@ -808,6 +812,30 @@ class Crowd:
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "physics": t4 - t3,
                         "total": t4 - t0, "batch": len(batch)}
         return seg_w
+
+    def warm(self) -> None:
+        """Trace the post-processing graphs this runtime can use (stage_graph.py: with and without
+        a facing goal, with the frames shown before and without, as physics mode's candidates)
+        and run each twice (TorchScript optimizes a graph at its second run), so that no avatar's
+        segment waits for it: unwarmed, the first segment of each kind took 0.15-0.2 s more and the
+        second 0.06 s more. Once per process and runtime config; the server does it at start."""
+        if not self.cfg.trace_stages:
+            return
+        x0 = standing_state().float()[None]
+        seg = x0[:, None].expand(1, self.motor.net.cfg.frames, STATE_DIM)
+        yes, no = torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
+        for facing in (False, True):
+            for past in (x0[:, None].expand(1, PAST, STATE_DIM), None):
+                ctx = StageContext(x0, rest_offsets(None, torch.float32)[None], no, torch.zeros(1), yes if facing else no,
+                                   yes, no, yes, past, None if past is None else yes, any_facing=facing)
+                for _ in range(2):
+                    self._stages(ctx, seg)
+
+    def _stages(self, ctx: StageContext, seg: torch.Tensor) -> torch.Tensor:
+        """The post-processing stages, as a traced graph or in Python (the same values)."""
+        if self.cfg.trace_stages:
+            return run_traced_stages(self.cfg, ctx, seg)
+        return run_stages(self.cfg, ctx, seg)
 
     def _simulate(self, batch: SegmentBatch, phys: list[int], cands_c: torch.Tensor, x0c: torch.Tensor, tf: Transform,
                   offsets: torch.Tensor, floor: torch.Tensor, has_past: torch.Tensor):
@@ -823,8 +851,9 @@ class Crowd:
         # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep)
         # (without the frames shown before: the body's continuity is the solver's momentum; the
         # simulated past read into the candidates made them jerkier, see the commit)
-        ctx = StageContext(x0c[idx].float(), offsets[idx].float(), _subset(batch, idx), tf.R[idx].transpose(-1, -2).float())
-        cands = run_stages(self.cfg, ctx, cands_c.float()).double()
+        ctx = StageContext.of(self.cfg, x0c[idx].float(), offsets[idx].float(), _subset(batch, idx),
+                              tf.R[idx].transpose(-1, -2).float())
+        cands = self._stages(ctx, cands_c.float()).double()
         cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx]).reshape(len(phys), K, N, STATE_DIM)
         p = torch.tensor(phys)
         x0 = batch.x0[p].clone()

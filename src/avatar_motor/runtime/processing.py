@@ -6,6 +6,7 @@ toward a facing goal, foot locking (with yaw for steered bodies), trend-keeping 
 speed-adaptive) smoothing, velocity-matched blending."""
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -126,7 +127,7 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         hip, knee, ankle, foot = (list(j) for j in zip(*_LEGS))
         P, G = forward_kinematics(root, u.root_rot, u.local_rot, off)  # G: (B, N, 22, 3, 3) global rotations
         ends = torch.tensor([foot, ankle]).T  # (leg, foot/ankle)
-        follow = torch.as_tensor(follow, dtype=seg.dtype).expand(len(seg))[:, None, None, None, None]
+        follow = torch.as_tensor(follow, dtype=seg.dtype).expand(seg.shape[0])[:, None, None, None, None]
         goal = P[:, :, ends] + follow * (u.joints[:, :, ends] - P[:, :, ends])  # (B, N, 2, 2, 3)
         if pin:
             B, N = goal.shape[:2]
@@ -143,13 +144,14 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         p_ankle = p_knee + (G_knee @ off[:, :, ankle, :, None])[..., 0]
         bone = (G_ankle @ off[:, :, foot, :, None])[..., 0]
         G_ankle = rot.rotation_between(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G_ankle
-        local = local.clone()  # the foot joints keep their local rotations
-        local[:, :, [j - 1 for j in hip]] = G[:, :, [PARENTS[j] for j in hip]].transpose(-1, -2) @ G_hip
-        local[:, :, [j - 1 for j in knee]] = G_hip.transpose(-1, -2) @ G_knee
-        local[:, :, [j - 1 for j in ankle]] = G_knee.transpose(-1, -2) @ G_ankle
+        # the foot joints keep their local rotations (index_copy rather than an indexed assignment,
+        # whose trace would keep the batch size: runtime/stage_graph.py)
+        local = local.index_copy(2, torch.tensor([j - 1 for j in hip + knee + ankle]), torch.cat(
+            (G[:, :, [PARENTS[j] for j in hip]].transpose(-1, -2) @ G_hip, G_hip.transpose(-1, -2) @ G_knee,
+             G_knee.transpose(-1, -2) @ G_ankle), 2))
         # FK of the new rotations: only the legs below the hips moved (the feet are leaves)
-        J = P.clone()
-        J[:, :, knee + ankle + foot] = torch.cat((p_knee, p_ankle, p_ankle + (G_ankle @ off[:, :, foot, :, None])[..., 0]), 2)
+        J = P.index_copy(2, torch.tensor(knee + ankle + foot),
+                         torch.cat((p_knee, p_ankle, p_ankle + (G_ankle @ off[:, :, foot, :, None])[..., 0]), 2))
     else:
         J, _ = forward_kinematics(root, u.root_rot, local, off)
     if follow is not None:
@@ -159,6 +161,15 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         up = torch.stack((torch.zeros_like(lift), lift, torch.zeros_like(lift)), -1)  # (B, N, 3)
         root, J = root + up, J + up[:, :, None]
     return _pack_moving(x0, root, u.root_rot, local, J)
+
+
+@functools.lru_cache(maxsize=16)
+def _fusion(N: int, weight: float, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """fuse_velocities' solution x = A^-1 (P + weight D^T b) as two fixed N x N matrices, A^-1 and
+    weight A^-1 D^T, where D takes differences (x_t - x_{t-1}) and A = I + weight D^T D."""
+    D = torch.eye(N, dtype=torch.float64) - torch.diag(torch.ones(N - 1, dtype=torch.float64), -1)
+    A_inv = torch.linalg.inv(torch.eye(N, dtype=torch.float64) + weight * D.T @ D)
+    return A_inv.to(dtype), (weight * A_inv @ D.T).to(dtype)
 
 
 def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) -> torch.Tensor:
@@ -171,12 +182,10 @@ def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) ->
         return seg
     B, N, _ = seg.shape
     u0, u = unpack(x0), unpack(seg)
-    D = torch.eye(N, dtype=seg.dtype) - torch.diag(torch.ones(N - 1, dtype=seg.dtype), -1)  # x_t - x_{t-1}
-    A = torch.eye(N, dtype=seg.dtype) + weight * D.T @ D
+    to_P, to_V = _fusion(int(N), float(weight), seg.dtype)
     b = u.velocities.reshape(B, N, 66) / FPS
-    b[:, 0] += u0.joints.reshape(B, 66)  # the first difference is taken from x0
-    rhs = u.joints.reshape(B, N, 66) + weight * D.T @ b
-    joints = torch.linalg.solve(A, rhs).reshape(B, N, 22, 3)
+    b = torch.cat((b[:, :1] + u0.joints.reshape(B, 1, 66), b[:, 1:]), 1)  # the first difference is taken from x0
+    joints = (to_P @ u.joints.reshape(B, N, 66) + to_V @ b).reshape(B, N, 22, 3)
     root_pos = u.root_pos + (joints[:, :, 0] - u.joints[:, :, 0])
     return _moved(x0, seg, root_pos, joints)
 
@@ -202,35 +211,38 @@ def _history(x0: torch.Tensor, r: int) -> torch.Tensor:
     u = unpack(x0)
     k = torch.arange(r, 0, -1, dtype=x0.dtype)[None, :, None]  # r .. 1 frames back
     past = x0[:, None].repeat(1, r, 1)
-    vel = u.velocities.reshape(len(x0), 1, 66)
+    vel = u.velocities.reshape(x0.shape[0], 1, 66)
     past[..., SLICES["joints"]] = x0[:, None, SLICES["joints"]] - k * vel / FPS
     past[..., SLICES["root_pos"]] = x0[:, None, SLICES["root_pos"]] - k * vel[..., :3] / FPS  # root = pelvis
     return past
 
 
 def smooth_segment(x0: torch.Tensor, seg: torch.Tensor, sigma: float | torch.Tensor = 1.0,
-                   past: torch.Tensor | None = None, has_past: torch.Tensor | None = None) -> torch.Tensor:
+                   past: torch.Tensor | None = None, has_past: torch.Tensor | None = None,
+                   max_sigma: float | None = None) -> torch.Tensor:
     """Temporal low-pass of a generated segment (our addition to PRIMAL's processing): a Gaussian
     of `sigma` frames (a number, or one per body (B,)) along time over root position, rotations (in
     6D, re-orthonormalized) and joint locations. In front of the segment stands x0's past: the
     frames shown before it (past (B, P, 267), oldest first, where has_past (B,) says they lead
     into x0), else x0 continued back at its velocity with its rotations held; the end is
     point-reflected. The network's x0 estimate keeps a little of the last step's noise; at 30 fps that is mm-scale jitter which reads
-    as foot skating. Velocities are recomputed afterwards."""
+    as foot skating. Velocities are recomputed afterwards. max_sigma: a bound on sigma known
+    before the data, which fixes the kernel's extent (what a traced graph needs; the result is the
+    same: each body's kernel is cut at its own radius)."""
     B, _, D = seg.shape
     sig = torch.as_tensor(sigma, dtype=seg.dtype).expand(B)
-    if float(sig.max()) <= 0:
+    if max_sigma is None and float(sig.max()) <= 0:
         return seg
     # each body's kernel ends at its own 2.5 sigma, so a body in a crowd is smoothed as it is alone
     # (a still body's wider kernel widened everyone's: the padding's far frames weighed in)
     radius = torch.ceil(2.5 * sig).clamp_min(1)  # (B,)
-    r = int(radius.max())
+    r = int(radius.max()) if max_sigma is None else max(1, math.ceil(2.5 * max_sigma))
     t = torch.arange(-r, r + 1, dtype=seg.dtype)
     k = torch.exp(-0.5 * (t / sig[:, None].clamp_min(1e-3)) ** 2)  # (B, 2r + 1); sigma 0 -> a delta
     k = k * (t.abs() <= radius[:, None])
     k = k / k.sum(1, keepdim=True)
     front = _history(x0, r - 1)
-    if past is not None and r > 1 and bool(has_past.any()):
+    if past is not None and r > 1:
         # the frames shown, rotations turning as they did (held ones braked every join: a jerk
         # twice every second); older ones extrapolated where P < r - 1
         known = past[:, -(r - 1):]
@@ -314,7 +326,8 @@ def lock_feet(x0: torch.Tensor, seg: torch.Tensor, where: torch.Tensor | None = 
     feet_now = torch.einsum("bnij,bnfj->bnfi", R, P[:, 1:]) + t[:, :, None]  # the feet after the turn back
     step = (feet_now - torch.cat((P[:, :1], feet_now[:, :-1]), 1))[..., [0, 2]]  # (B, N, 2, 2)
     d = -(c[..., None] * step).sum(2) / c.sum(2, keepdim=True).clamp(min=1.0)  # (B, N, 2)
-    t[..., [0, 2]] += d.cumsum(1)
+    slide = d.cumsum(1)
+    t = t + torch.stack((slide[..., 0], torch.zeros_like(slide[..., 0]), slide[..., 1]), -1)
     return _move_frames(x0, u, R, t)
 
 

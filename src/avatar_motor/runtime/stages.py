@@ -73,16 +73,42 @@ class SegmentBatch:
 
 @dataclass
 class StageContext:
-    """What the stages read besides the segment, in the segment's canonical frame."""
+    """What the stages read besides the segment, in the segment's canonical frame: tensors, and
+    Python values that do not depend on the batch's contents beyond `any_facing`, so that the
+    stages can run as one graph (runtime/stage_graph.py). `of` makes it from a SegmentBatch."""
     x0: torch.Tensor  # (B, 267) canonical initial state
     offsets: torch.Tensor  # (B, 22, 3) each body's bones
-    batch: SegmentBatch
-    Rt: torch.Tensor  # (B, 3, 3) world -> canonical rotation
+    steered: torch.Tensor  # (B,) bool: a goal, a label or a target steers the body
+    facing: torch.Tensor  # (B,) canonical yaw of the facing goal (0 without one)
+    has_facing: torch.Tensor  # (B,) bool: the body has a facing goal
+    lock_where: torch.Tensor  # (B,) bool: lock_feet moves the body
+    lock_yaw: torch.Tensor  # (B,) bool: lock_feet also undoes a yaw on both planted feet
+    match_velocity: torch.Tensor  # (B,) bool: inertialize matches velocities (no impulse at this segment)
     # (B, PAST, 267) the frames shown before x0, canonical, and (B,) where they lead into x0
     # (processing.continuous_past); None: no past (each stage then extrapolates x0)
     past: torch.Tensor | None = None
     has_past: torch.Tensor | None = None
+    any_facing: bool = True  # some body has a facing goal (False: turn_toward is skipped)
     turned: torch.Tensor | None = None  # (B, N) yaw added on purpose by turn_toward
+
+    @classmethod
+    def of(cls, cfg, x0: torch.Tensor, offsets: torch.Tensor, batch: SegmentBatch, Rt: torch.Tensor,
+           past: torch.Tensor | None = None, has_past: torch.Tensor | None = None) -> "StageContext":
+        """The context of a batch's segments; Rt (B, 3, 3) world -> canonical rotation."""
+        has_facing = torch.tensor([f is not None for f in batch.facing_goal])
+        facing = torch.zeros(len(batch), dtype=x0.dtype)
+        if bool(has_facing.any()):
+            F = torch.stack([torch.zeros(3) if f is None else f.float() for f in batch.facing_goal]).to(Rt.dtype)
+            g = (Rt @ F[..., None])[..., 0]
+            facing = torch.where(has_facing, torch.atan2(g[:, 0], g[:, 2]), torch.zeros(1, dtype=g.dtype)).to(x0.dtype)
+        # not under gradient speed guidance: with it this model glides rather than steps, and
+        # locking its feet would stop the avatar (measured: 0.03 m instead of 1.8 m in 4 s)
+        gliding = cfg.move_weight > 0 or cfg.path_weight > 0
+        return cls(x0, offsets, batch.steered, facing, has_facing,
+                   lock_where=torch.tensor([v is None or not gliding for v in batch.v_goal]),
+                   lock_yaw=torch.tensor([cfg.lock_yaw and (f is not None or ad)
+                                          for f, ad in zip(batch.facing_goal, batch.adapted)]),
+                   match_velocity=~batch.impulse, past=past, has_past=has_past, any_facing=bool(has_facing.any()))
 
 
 def _fuse(cfg, ctx: StageContext, seg):
@@ -90,34 +116,26 @@ def _fuse(cfg, ctx: StageContext, seg):
 
 
 def _turn(cfg, ctx: StageContext, seg):
-    goals = ctx.batch.facing_goal
-    if cfg.turn_rate <= 0 or all(f is None for f in goals):
+    if cfg.turn_rate <= 0 or not ctx.any_facing:
         return seg
-    yaw = torch.zeros(len(seg), dtype=seg.dtype)
-    for k, f in enumerate(goals):
-        if f is not None:
-            g = ctx.Rt[k] @ f.to(ctx.Rt.dtype)
-            yaw[k] = torch.atan2(g[0], g[2])
-    seg, ctx.turned = turn_toward(ctx.x0, seg, yaw, cfg.turn_rate, cfg.turn_tolerance,
-                                  torch.tensor([f is not None for f in goals]))
+    seg, ctx.turned = turn_toward(ctx.x0, seg, ctx.facing, cfg.turn_rate, cfg.turn_tolerance, ctx.has_facing)
     return seg
 
 
 def _lock(cfg, ctx: StageContext, seg):
-    b = ctx.batch
-    # not under gradient speed guidance: with it this model glides rather than steps, and
-    # locking its feet would stop the avatar (measured: 0.03 m instead of 1.8 m in 4 s)
-    gliding = cfg.move_weight > 0 or cfg.path_weight > 0
-    return lock_feet(ctx.x0, seg, where=torch.tensor([v is None or not gliding for v in b.v_goal]),
-                     yaw=torch.tensor([cfg.lock_yaw and (f is not None or ad) for f, ad in zip(b.facing_goal, b.adapted)]),
-                     turned=ctx.turned)
+    return lock_feet(ctx.x0, seg, where=ctx.lock_where, yaw=ctx.lock_yaw, turned=ctx.turned)
+
+
+def max_smoothing_width(cfg) -> float:
+    """The widest smoothing_widths can be."""
+    return max(cfg.smooth_sigma, cfg.still_sigma)
 
 
 def smoothing_widths(cfg, x0: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
     """Per-body smoothing width: smooth_sigma when moving, up to still_sigma for a body that is
     nearly still (mean joint speed below 0.1 m/s, ramping up to 0.5), like a One-Euro filter: the
     network's residual wobble is what a still body shows most, and real idling is very still."""
-    J = torch.cat((x0[:, None], seg), 1)[..., SLICES["joints"]].reshape(len(seg), -1, 22, 3)
+    J = torch.cat((x0[:, None], seg), 1)[..., SLICES["joints"]].reshape(seg.shape[0], -1, 22, 3)
     speed = ((J[:, 1:] - J[:, :-1]).norm(dim=-1).mean((1, 2)) * FPS)
     still = ((0.5 - speed) / 0.4).clamp(0.0, 1.0)
     return cfg.smooth_sigma + max(0.0, cfg.still_sigma - cfg.smooth_sigma) * still
@@ -126,7 +144,8 @@ def smoothing_widths(cfg, x0: torch.Tensor, seg: torch.Tensor) -> torch.Tensor:
 def _smooth(cfg, ctx: StageContext, seg):
     if cfg.smooth_sigma <= 0:
         return seg
-    return smooth_segment(ctx.x0, seg, smoothing_widths(cfg, ctx.x0, seg), ctx.past, ctx.has_past)
+    return smooth_segment(ctx.x0, seg, smoothing_widths(cfg, ctx.x0, seg), ctx.past, ctx.has_past,
+                          max_smoothing_width(cfg))
 
 
 def _snap(cfg, ctx: StageContext, seg):
@@ -135,7 +154,7 @@ def _snap(cfg, ctx: StageContext, seg):
 
 def _inertialize(cfg, ctx: StageContext, seg):
     before = None if ctx.past is None else ctx.past[:, -1]
-    return inertialize(ctx.x0, seg, cfg.inertia_halflife, match_velocity=~ctx.batch.impulse, before=before,
+    return inertialize(ctx.x0, seg, cfg.inertia_halflife, match_velocity=ctx.match_velocity, before=before,
                        has_before=ctx.has_past)
 
 
@@ -147,19 +166,15 @@ def _free_body(cfg, ctx: StageContext, seg):
     # the network's rotations pose a free body more naturally than its joint locations do, so the
     # root-motion stages work on that body; a steered body keeps the predicted locations, as its
     # rotations lag the steering and their feet glide (model card, "One body")
-    free = (~ctx.batch.steered).nonzero()[:, 0]
-    if len(free) == len(seg):
-        return solve_body(ctx.x0, seg, ctx.offsets)
-    out = seg.clone()
-    if len(free):  # only the free rows are solved (rows are independent): a steered crowd skips it
-        out[free] = solve_body(ctx.x0[free], seg[free], ctx.offsets[free])
-    return out
+    # (every row is solved and the steered ones keep theirs: no row selection depending on the
+    # batch, so the stages are one graph)
+    return torch.where(ctx.steered[:, None, None], seg, solve_body(ctx.x0, seg, ctx.offsets))
 
 
 def _leg_ik(cfg, ctx: StageContext, seg):
     # a steered body's legs step where the processed feet step; a free body's legs are already
     # its rotations' and are only kept above the ground
-    return solve_body(ctx.x0, seg, ctx.offsets, follow=ctx.batch.steered.to(seg.dtype), pin=cfg.pin_feet)
+    return solve_body(ctx.x0, seg, ctx.offsets, follow=ctx.steered.to(seg.dtype), pin=cfg.pin_feet)
 
 
 Stage = Callable[[object, StageContext, torch.Tensor], torch.Tensor]

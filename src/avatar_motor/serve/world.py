@@ -423,6 +423,7 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: 
     and keeps the batch within 60 % of a segment's 0.5 s (the clock, encoding and this machine's
     noise take the rest). Returns (cap, keep_on_cut, a line for the log)."""
     crowd = Crowd(motor, config, 0, adaptors)
+    crowd.warm()  # the avatars' first segments then do not trace the post-processing graphs
     for k in range(probe):
         crowd.spawn(position=(1.0 * k, 0.0))
 

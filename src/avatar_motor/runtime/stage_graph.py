@@ -1,0 +1,68 @@
+"""The post-processing stages (runtime/stages.py) traced into one TorchScript graph, what
+`RuntimeConfig.trace_stages` runs: for one avatar the stages are some 1,400 small tensor
+operations, each of which costs more to dispatch from Python than to compute. The graph runs the
+same kernels on the same values, so its output is bit for bit the Python stages' (the tests
+check it), in about 0.6x their time at one avatar.
+
+A graph is traced for one signature: the runtime config (the stages and their settings), the
+dtype, the frames of the segment and of the past, and whether some body has a facing goal
+(turn_toward runs or not). The batch size is free. Each is traced once per process (0.1 s) and
+kept. The stages read no Python value off the batch's tensors (StageContext), so that one trace
+fits every batch of its signature.
+
+Exported to ONNX Runtime instead, the same stages ran at about 0.75-0.9x the Python's time at one
+avatar (some 2,000 nodes at about a microsecond each) and differed from it by up to 1e-4 m."""
+from __future__ import annotations
+
+import threading
+import warnings
+
+import torch
+
+from .stages import StageContext, run_stages
+
+
+class _Stages(torch.nn.Module):
+    def __init__(self, cfg, any_facing: bool):
+        super().__init__()
+        self.cfg, self.any_facing = cfg, any_facing
+
+    def forward(self, seg, x0, offsets, steered, facing, has_facing, lock_where, lock_yaw, match_velocity,
+                past=None, has_past=None):
+        ctx = StageContext(x0, offsets, steered, facing, has_facing, lock_where, lock_yaw, match_velocity, past,
+                           has_past, any_facing=self.any_facing)
+        return run_stages(self.cfg, ctx, seg)
+
+
+def _tensors(ctx: StageContext, seg: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    out = (seg, ctx.x0, ctx.offsets, ctx.steered, ctx.facing, ctx.has_facing, ctx.lock_where, ctx.lock_yaw,
+           ctx.match_velocity)
+    return out + ((ctx.past, ctx.has_past) if ctx.past is not None else ())
+
+
+def signature(cfg, ctx: StageContext, seg: torch.Tensor) -> tuple:
+    """What a traced graph is fixed to (the batch size is not)."""
+    return (repr(cfg), seg.dtype, seg.shape[1], None if ctx.past is None else ctx.past.shape[1], ctx.any_facing)
+
+
+_GRAPHS: dict[tuple, torch.jit.ScriptModule] = {}
+_LOCK = threading.Lock()
+
+
+def trace_stages(cfg, ctx: StageContext, seg: torch.Tensor) -> torch.jit.ScriptModule:
+    """The graph of run_stages for the signature of (cfg, ctx, seg), traced on them."""
+    with torch.no_grad(), warnings.catch_warnings():
+        # the tracer warns of every constant it records (index lists, the config's numbers);
+        # tests/test_runtime.py checks the graph against the Python stages on other batches
+        warnings.simplefilter("ignore")
+        return torch.jit.trace(_Stages(cfg, ctx.any_facing), _tensors(ctx, seg), check_trace=False)
+
+
+def run_traced_stages(cfg, ctx: StageContext, seg: torch.Tensor) -> torch.Tensor:
+    """run_stages(cfg, ctx, seg) through the traced graph of its signature (traced at first use)."""
+    key = signature(cfg, ctx, seg)
+    with _LOCK:  # the server's threads trace a signature once
+        graph = _GRAPHS.get(key)
+        if graph is None:
+            graph = _GRAPHS[key] = trace_stages(cfg, ctx, seg)
+    return graph(*_tensors(ctx, seg))
