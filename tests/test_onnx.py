@@ -87,4 +87,31 @@ def test_the_runtime_on_int8_weights_repeats_itself_per_seed(tmp_path):
         crowd.set_goal(i, (1.0, 0.0))
         runs.append(torch.stack([crowd.step_segment()[i] for _ in range(2)]))
     assert torch.equal(runs[0], runs[1])
-    assert crowd.sampler.net is onnx_denoiser(motor.net, True)
+    assert crowd.sampler.net.small is onnx_denoiser(motor.net, True)  # one avatar: below bfloat16_from
+
+
+def test_large_batches_run_the_network_in_bfloat16_and_repeat_themselves(tmp_path):
+    from avatar_motor.runtime.sampler import BatchSwitch
+    motor = shipped_or_tiny(tmp_path)
+    net = motor.net.eval()
+    calls = []
+    switch = BatchSwitch(lambda *a: calls.append(len(a[1])) or net(*a), net, rows=4)
+    cfg = net.cfg
+    g = torch.Generator().manual_seed(0)
+    args = [torch.full((6,), 3), torch.randn(6, cfg.frames, cfg.state_dim, generator=g),
+            torch.randn(6, cfg.state_dim, generator=g)] + ([torch.randn(6, cfg.latent, generator=g)] if cfg.latent else [])
+    with torch.no_grad():
+        small = switch(*[a[:3] for a in args])
+        large = switch(*args)
+        exact = net(*args)
+    assert calls == [3]  # 3 rows went to the float32 network, 6 did not
+    assert torch.allclose(small, exact[:3], atol=1e-5)
+    assert large.dtype == torch.float32 and not torch.equal(large, exact)  # computed in bfloat16 ...
+    assert float((large - exact).abs().max()) < 0.1 * float(exact.abs().max())  # ... close to float32
+    runs = []
+    for _ in range(2):  # a crowd above the threshold repeats itself per seed
+        crowd = Crowd(motor, RuntimeConfig(bfloat16_from=2), seed=5)
+        ids = [crowd.spawn(position=(k, 0.0)) for k in range(3)]
+        crowd.set_goal(ids[0], (1.0, 0.0))
+        runs.append(torch.stack([torch.stack([s[i] for i in ids]) for s in (crowd.step_segment() for _ in range(2))]))
+    assert torch.equal(runs[0], runs[1])

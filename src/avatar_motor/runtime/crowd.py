@@ -135,6 +135,10 @@ class RuntimeConfig:
     # of float32: off, as it bought no time for one avatar and little for crowds at a small cost
     # in quality (docs/onnx.md)
     int8_weights: bool = False
+    # batches of at least this many rows run the network in bfloat16 (torch autocast; 0 = never;
+    # runtime/sampler.BatchSwitch): on a CPU with bfloat16 matrix units that beats float32 from
+    # about 8 rows, with the same realism (model card of the EMDM generator)
+    bfloat16_from: int = 8
     # the post-processing stages run as a TorchScript graph traced from them (stage_graph.py):
     # the same kernels on the same values, with less time spent dispatching them from Python
     trace_stages: bool = True

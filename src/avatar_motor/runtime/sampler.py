@@ -21,6 +21,21 @@ from ..model.onnx import onnx_denoiser
 from .stages import SegmentBatch
 
 BACKENDS = ("torch", "onnxruntime")
+
+
+class BatchSwitch:
+    """The network as `small` runs it (ONNX Runtime or torch in float32) for batches of fewer than
+    `rows` rows, and as torch runs it under bfloat16 autocast for larger ones, where this CPU's
+    bfloat16 matrix units pay (RuntimeConfig.bfloat16_from). The output is float32 either way."""
+
+    def __init__(self, small, net, rows: int):
+        self.small, self.net, self.rows = small, net, rows
+
+    def __call__(self, t, x_t, *rest):
+        if len(x_t) < self.rows:
+            return self.small(t, x_t, *rest)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return self.net(t, x_t, *rest).float()
 log = logging.getLogger("avatar_motor.runtime")
 
 # the joints that carry a steering impulse: the whole body. The trunk alone (as in the
@@ -95,8 +110,10 @@ class Sampler:
         # network, whose persona conditions the exported graph does not take)
         self.net = (onnx_denoiser(motor.net, cfg.int8_weights) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona
                     else motor.net)
+        if cfg.bfloat16_from > 0:
+            self.net = BatchSwitch(self.net, motor.net, cfg.bfloat16_from)
         # a few-step model's teacher for the segments after an impulse preset (impulse_teacher)
-        self.teacher = None
+        self.teacher = None  # (its batches are one avatar's: no bfloat16)
         if self.kind != "ddpm" and cfg.impulse_teacher > 0:
             base = _teacher(motor)
             # the teacher's rows are encoded and decoded with this model's normalisation, which
