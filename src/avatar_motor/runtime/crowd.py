@@ -136,9 +136,9 @@ class RuntimeConfig:
     # in quality (docs/onnx.md)
     int8_weights: bool = False
     # batches of at least this many rows run the network in bfloat16 (torch autocast; 0 = never;
-    # runtime/sampler.BatchSwitch): on a CPU with bfloat16 matrix units that beats float32 from
-    # about 8 rows, with the same realism (model card of the EMDM generator). A batch with physics
-    # mode's candidates stays in float32 (runtime/sampler.Sampler._denoiser)
+    # runtime/sampler.BatchSwitch) on a CPU with bfloat16 matrix units (AVX-512 BF16 or AMX; on
+    # others never): there it beats float32 from about 8 rows, with the same realism (model card of
+    # the EMDM generator). A batch with physics mode's candidates stays in float32 (Sampler._denoiser)
     bfloat16_from: int = 8
     # the post-processing stages run as a TorchScript graph traced from them (stage_graph.py):
     # the same kernels on the same values, with less time spent dispatching them from Python

@@ -23,6 +23,14 @@ from .stages import SegmentBatch
 BACKENDS = ("torch", "onnxruntime")
 
 
+def bfloat16_units() -> bool:
+    """This CPU multiplies bfloat16 matrices in hardware (AVX-512 BF16 or AMX). Without, bfloat16
+    ran 2-9x slower than float32 (an AVX2 host: model card of the EMDM generator)."""
+    cpu = torch.cpu
+    return bool(getattr(cpu, "_is_avx512_bf16_supported", lambda: False)()
+                or getattr(cpu, "_is_amx_tile_supported", lambda: False)())
+
+
 class BatchSwitch:
     """The network as `small` runs it (ONNX Runtime or torch in float32) for batches of fewer than
     `rows` rows, and as torch runs it under bfloat16 autocast for larger ones, where this CPU's
@@ -110,7 +118,7 @@ class Sampler:
         # network, whose persona conditions the exported graph does not take)
         self.net = (onnx_denoiser(motor.net, cfg.int8_weights) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona
                     else motor.net)
-        if cfg.bfloat16_from > 0:
+        if cfg.bfloat16_from > 0 and bfloat16_units():
             self.net = BatchSwitch(self.net, motor.net, cfg.bfloat16_from)
         # a few-step model's teacher for the segments after an impulse preset (impulse_teacher)
         self.teacher = None  # (its batches are one avatar's: no bfloat16)
