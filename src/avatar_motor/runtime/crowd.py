@@ -27,7 +27,7 @@ from ..physics import simulate as physics
 from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
 from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
 from .processing import PAST, continuous_past, physical_faults
-from .sampler import Sampler, _subset
+from .sampler import BatchSwitch, Sampler, _subset
 from .stage_graph import run_traced_stages
 from .stages import DEFAULT_STAGES, PhysicsJob, SegmentBatch, StageContext, check_stages, run_stages
 
@@ -818,12 +818,19 @@ class Crowd:
                         "total": t4 - t0, "batch": len(batch)}
         return seg_w
 
+    @torch.inference_mode()
     def warm(self) -> None:
         """Trace the post-processing graphs this runtime can use (stage_graph.py: with and without
         a facing goal, with the frames shown before and without, as physics mode's candidates)
         and run each twice (TorchScript optimizes a graph at its second run), so that no avatar's
         segment waits for it: unwarmed, the first segment of each kind took 0.15-0.2 s more and the
-        second 0.06 s more. Once per process and runtime config; the server does it at start."""
+        second 0.06 s more. Once per process and runtime config; the server does it at start.
+        Also the network's bfloat16 kernels, set up at their first call (60 ms)."""
+        net, cfg = self.sampler.net, self.motor.net.cfg
+        if isinstance(net, BatchSwitch):
+            B = net.rows
+            net(torch.zeros(B, dtype=torch.long), torch.zeros(B, cfg.frames, STATE_DIM), torch.zeros(B, STATE_DIM),
+                *([torch.zeros(B, cfg.latent)] if cfg.latent else []))
         if not self.cfg.trace_stages:
             return
         x0 = standing_state().float()[None]

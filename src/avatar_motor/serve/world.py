@@ -436,6 +436,7 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: 
 
     seconds(1)
     t1 = min(seconds(1) for _ in range(2))
+    seconds(probe)  # (a first call at a batch size sets up its kernels)
     tp = seconds(probe)
     per = max((tp - t1) / (probe - 1), 1e-4)
     seg = motor.net.cfg.frames  # new frames per segment (x0, the frame before them, is not repeated)
