@@ -731,7 +731,9 @@ def test_the_runtime_hands_the_frames_shown_to_the_join(motor):
 
 def test_traced_stages_equal_the_python_stages_on_other_batches(tmp_path):
     """runtime/stage_graph.py: a graph traced on one batch gives, bit for bit, what the Python
-    stages give on batches of other sizes and contents (goals, facing, an impulse, a past or not)."""
+    stages give on batches of other sizes and contents (goals, facing, an impulse, a past or not),
+    for the default stages and other choices of them."""
+    import dataclasses
     from avatar_motor.runtime import stage_graph
     from avatar_motor.runtime.crowd import RuntimeConfig
     from avatar_motor.runtime.stages import StageContext, run_stages
@@ -756,14 +758,15 @@ def test_traced_stages_equal_the_python_stages_on_other_batches(tmp_path):
                             pick(c.lock_where), pick(c.lock_yaw), pick(c.match_velocity), pick(c.past),
                             pick(c.has_past), any_facing=c.any_facing)
 
-    cfg = crowd.cfg
-    for past in (True, False):  # the runtime's stages, and those of physics mode's candidates (no past)
-        c = ctx if past else StageContext(**{**ctx.__dict__, "past": None, "has_past": None})
-        graph = stage_graph.trace_stages(cfg, rows(c, [3]), seg[[3]])  # traced on one avatar
-        for r in ([0, 1, 2, 3, 4], [2], [4, 1], [1, 1, 0]):
-            want = run_stages(cfg, rows(c, r), seg[r])
-            got = graph(*stage_graph._tensors(rows(c, r), seg[r]))
-            assert torch.equal(got, want), (past, r, float((got - want).abs().max()))
+    for stages in (crowd.cfg.stages, (), ("turn_toward", "lock_feet", "fk"), ("smooth", "inertialize", "leg_ik")):
+        cfg = dataclasses.replace(crowd.cfg, stages=stages)
+        for past in (True, False):  # the runtime's stages, and those of physics mode's candidates (no past)
+            c = ctx if past else StageContext(**{**ctx.__dict__, "past": None, "has_past": None})
+            graph = stage_graph.trace_stages(cfg, rows(c, [3]), seg[[3]])  # traced on one avatar
+            for r in ([0, 1, 2, 3, 4], [2], [4, 1], [1, 1, 0]):
+                want = run_stages(cfg, rows(c, r), seg[r])
+                got = graph(*stage_graph._tensors(rows(c, r), seg[r]))
+                assert torch.equal(got, want), (stages, past, r, float((got - want).abs().max()))
     # the runtime with traced stages streams the same frames as without
     frames = {}
     for traced in (False, True):
