@@ -166,10 +166,12 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
 @functools.lru_cache(maxsize=16)
 def _fusion(N: int, weight: float, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """fuse_velocities' solution x = A^-1 (P + weight D^T b) as two fixed N x N matrices, A^-1 and
-    weight A^-1 D^T, where D takes differences (x_t - x_{t-1}) and A = I + weight D^T D."""
-    D = torch.eye(N, dtype=torch.float64) - torch.diag(torch.ones(N - 1, dtype=torch.float64), -1)
-    A_inv = torch.linalg.inv(torch.eye(N, dtype=torch.float64) + weight * D.T @ D)
-    return A_inv.to(dtype), (weight * A_inv @ D.T).to(dtype)
+    weight A^-1 D^T, where D takes differences (x_t - x_{t-1}) and A = I + weight D^T D. (Made
+    outside inference mode: kept, they may later meet tensors that autograd records.)"""
+    with torch.inference_mode(False):
+        D = torch.eye(N, dtype=torch.float64) - torch.diag(torch.ones(N - 1, dtype=torch.float64), -1)
+        A_inv = torch.linalg.inv(torch.eye(N, dtype=torch.float64) + weight * D.T @ D)
+        return A_inv.to(dtype), (weight * A_inv @ D.T).to(dtype)
 
 
 def fuse_velocities(x0: torch.Tensor, seg: torch.Tensor, weight: float = 1.0) -> torch.Tensor:
