@@ -16,6 +16,7 @@ from ..body.motion_state import FPS, horizontal, joints_of
 from ..model.checkpoint import Motor
 from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
 from ..runtime.guidance import facing_of
+from ..runtime.sampler import bfloat16_units
 from . import metrics as M
 from .realism import BodyCheck, format_body, rollout
 
@@ -194,7 +195,10 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
 
 
 def _backend_name(cfg: RuntimeConfig) -> str:
-    return cfg.backend if cfg.backend == "torch" else f"onnxruntime {'int8' if cfg.int8_weights else 'float32'}"
+    name = cfg.backend if cfg.backend == "torch" else f"onnxruntime {'int8' if cfg.int8_weights else 'float32'}"
+    if cfg.bfloat16_from > 0 and bfloat16_units():
+        return f"{name}, bfloat16" if not cfg.int8_weights else f"{name}, bfloat16 from {cfg.bfloat16_from} rows"
+    return name
 
 
 def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256,
@@ -211,7 +215,7 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     steps = default.steps or motor.sampler["steps"]
     label = f"{'DDPM' if motor.sampler['kind'] == 'ddpm' else motor.sampler['kind']} {steps}"
     # the DDPM rows are the runtime before few-step sampling: the network in float32, the stages in Python
-    before = RuntimeConfig(int8_weights=False, trace_stages=False)
+    before = RuntimeConfig(int8_weights=False, trace_stages=False, bfloat16_from=0)
     settings = [
         ("DDPM 50", base, dataclasses.replace(before, steps=50, stages=()), False),
         ("DDPM 50 + proc. + CBG", base, dataclasses.replace(before, steps=50), True),
@@ -222,12 +226,16 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     other = "onnxruntime" if default.backend == "torch" else "torch"
     try:
         __import__(other)
-        settings.append((f"{label} + proc. + CBG ({other})", motor, dataclasses.replace(default, backend=other), True))
+        flipped = dataclasses.replace(default, backend=other)
+        settings.append((f"{label} + proc. + CBG ({_backend_name(flipped)})", motor, flipped, True))
     except ImportError:
         pass
     if default.backend == "onnxruntime":  # the same graph with the other precision of its weights
         flipped = dataclasses.replace(default, int8_weights=not default.int8_weights)
         settings.append((f"{label} + proc. + CBG ({_backend_name(flipped)})", motor, flipped, True))
+    if default.bfloat16_from > 0 and bfloat16_units():  # the network in float32 throughout
+        off = dataclasses.replace(default, bfloat16_from=0)
+        settings.append((f"{label} + proc. + CBG ({_backend_name(off)})", motor, off, True))
     # the post-processing stages traced into one graph (the same values) or run from Python
     flipped = dataclasses.replace(default, trace_stages=not default.trace_stages)
     settings.append((f"{label} + proc. + CBG ({_backend_name(default)}, stages "

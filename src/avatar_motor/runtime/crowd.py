@@ -135,10 +135,11 @@ class RuntimeConfig:
     # of float32: off, as it bought no time for one avatar and little for crowds at a small cost
     # in quality (docs/onnx.md)
     int8_weights: bool = False
-    # batches of at least this many rows run the network in bfloat16 (torch autocast; 0 = never;
-    # runtime/sampler.BatchSwitch) on a CPU with bfloat16 matrix units (AVX-512 BF16 or AMX; on
-    # others never): there it beats float32 from about 8 rows, with the same realism (model card of
-    # the EMDM generator). A batch with physics mode's candidates stays in float32 (Sampler._denoiser)
+    # on a CPU with bfloat16 matrix units (AVX-512 BF16 or AMX; on others never) the network runs
+    # in bfloat16, with the same realism (model card of the EMDM generator): batches of at least
+    # this many rows under torch autocast, smaller ones with bfloat16 linear weights
+    # (runtime/sampler.BatchSwitch); 0 = never. A batch with physics mode's candidates stays in
+    # float32 (Sampler._denoiser)
     bfloat16_from: int = 8
     # the post-processing stages run as a TorchScript graph traced from them (stage_graph.py):
     # the same kernels on the same values, with less time spent dispatching them from Python
@@ -825,12 +826,13 @@ class Crowd:
         and run each twice (TorchScript optimizes a graph at its second run), so that no avatar's
         segment waits for it: unwarmed, the first segment of each kind took 0.15-0.2 s more and the
         second 0.06 s more. Once per process and runtime config; the server does it at start.
-        Also the network's bfloat16 kernels, set up at their first call (60 ms)."""
+        Also the network's bfloat16 forms: autocast's kernels are set up at their first call (60
+        ms), the small batches' traced graph is optimized at its second."""
         net, cfg = self.sampler.net, self.motor.net.cfg
         if isinstance(net, BatchSwitch):
-            B = net.rows
-            net(torch.zeros(B, dtype=torch.long), torch.zeros(B, cfg.frames, STATE_DIM), torch.zeros(B, STATE_DIM),
-                *([torch.zeros(B, cfg.latent)] if cfg.latent else []))
+            for B in (net.rows, 1, 1):
+                net(torch.zeros(B, dtype=torch.long), torch.zeros(B, cfg.frames, STATE_DIM), torch.zeros(B, STATE_DIM),
+                    *([torch.zeros(B, cfg.latent)] if cfg.latent else []))
         if not self.cfg.trace_stages:
             return
         x0 = standing_state().float()[None]

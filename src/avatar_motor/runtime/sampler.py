@@ -17,6 +17,7 @@ from ..model.checkpoint import Motor
 from ..model.persona import TEXT_DIM, TRAJ_FEATURES, PersonaCond
 from .guidance import facing_loss_and_grad, facing_of, goal_trajectory, move_loss_and_grad, path_loss_and_grad
 from ..model import fewstep
+from ..model.bf16 import bf16_denoiser
 from ..model.onnx import onnx_denoiser
 from .stages import SegmentBatch
 
@@ -32,12 +33,15 @@ def bfloat16_units() -> bool:
 
 
 class BatchSwitch:
-    """The network as `small` runs it (ONNX Runtime or torch in float32) for batches of fewer than
-    `rows` rows, and as torch runs it under bfloat16 autocast for larger ones, where this CPU's
-    bfloat16 matrix units pay (RuntimeConfig.bfloat16_from). The output is float32 either way."""
+    """The network in bfloat16, where this CPU's bfloat16 matrix units pay (RuntimeConfig.bfloat16_from):
+    batches of fewer than `rows` rows as `small` runs it (model/bf16.py: bfloat16 linear weights,
+    traced), larger ones as torch runs `net` under bfloat16 autocast. `float32` is the network in
+    float32 (ONNX Runtime or torch), for what must not change (physics mode's candidates). The
+    output is float32 in every case."""
 
-    def __init__(self, small, net, rows: int):
-        self.small, self.net, self.rows = small, net, rows
+    def __init__(self, float32, net, rows: int, small=None):
+        self.float32, self.net, self.rows = float32, net, rows
+        self.small = float32 if small is None else small
 
     def __call__(self, t, x_t, *rest):
         if len(x_t) < self.rows:
@@ -119,7 +123,9 @@ class Sampler:
         self.net = (onnx_denoiser(motor.net, cfg.int8_weights) if cfg.backend == "onnxruntime" and not motor.net.cfg.persona
                     else motor.net)
         if cfg.bfloat16_from > 0 and bfloat16_units():
-            self.net = BatchSwitch(self.net, motor.net, cfg.bfloat16_from)
+            # (int8 weights asked for: small batches keep them)
+            small = None if cfg.int8_weights or motor.net.cfg.persona else bf16_denoiser(motor.net)
+            self.net = BatchSwitch(self.net, motor.net, cfg.bfloat16_from, small)
         # a few-step model's teacher for the segments after an impulse preset (impulse_teacher)
         self.teacher = None  # (its batches are one avatar's: no bfloat16)
         if self.kind != "ddpm" and cfg.impulse_teacher > 0:
@@ -139,8 +145,8 @@ class Sampler:
         The avatars an adaptor steers are sampled as it was trained: on its base with DDPM (with a
         few-step model, ADAPTOR_STEPS), one batch per adaptor; so are, on the base network itself,
         a few-step model's avatars whose batch row asks for its teacher (after an impulse preset);
-        the others with the model's own sampler. Rows are independent, so the split changes no
-        avatar's motion."""
+        the others with the model's own sampler. Rows are independent, so in float32 the split
+        changes no avatar's motion (in bfloat16 a row depends on its batch by millimetres)."""
         taught = [self.teacher is not None and bool(batch.teacher and batch.teacher[k]) and ad is None
                   for k, ad in enumerate(batch.adaptors)]
         groups = sorted({k for k in batch.adaptors if k is not None}) + ([TEACHER] if any(taught) else [])
@@ -192,7 +198,7 @@ class Sampler:
             # physics mode's candidates stay in float32: in bfloat16 the simulated bodies (with joint
             # limits) left them sooner and resampled, every frame instead of every 8 (16 avatars:
             # 25 against 33 frames/s each) though their realism read the same
-            net = net.small
+            net = net.float32
         if isinstance(ad, int) and ad == TEACHER:
             teacher = self.teacher
             return lambda x_t, t, z=None: teacher(t, x_t, cond)
