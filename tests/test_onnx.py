@@ -119,3 +119,25 @@ def test_large_batches_run_the_network_in_bfloat16_and_repeat_themselves(tmp_pat
         crowd.set_goal(ids[0], (1.0, 0.0))
         runs.append(torch.stack([torch.stack([s[i] for i in ids]) for s in (crowd.step_segment() for _ in range(2))]))
     assert torch.equal(runs[0], runs[1])
+
+
+def test_the_bfloat16_graph_takes_any_batch_and_stays_near_float32(tmp_path):
+    """model/bf16.py: traced on a batch of 2, the graph gives what its module gives on batches of
+    1 and 5, in float32 and near the float32 network."""
+    import copy
+    from avatar_motor.model.bf16 import _swap_linears, bf16_denoiser
+    motor = shipped_or_tiny(tmp_path)
+    net = motor.net.eval()
+    graph = bf16_denoiser(net)
+    assert bf16_denoiser(net) is graph  # made once per network
+    module = copy.deepcopy(net)
+    _swap_linears(module)
+    cfg = net.cfg
+    g = torch.Generator().manual_seed(1)
+    for B in (1, 5):
+        args = [torch.full((B,), 2), torch.randn(B, cfg.frames, cfg.state_dim, generator=g),
+                torch.randn(B, cfg.state_dim, generator=g)] + ([torch.randn(B, cfg.latent, generator=g)] if cfg.latent else [])
+        with torch.no_grad():
+            out, exact = graph(*args), net(*args)
+            assert out.dtype == torch.float32 and torch.equal(out, module(*args))
+        assert 0 < float((out - exact).abs().max()) < 0.1 * float(exact.abs().max())
