@@ -836,7 +836,7 @@ class Crowd:
         if not self.cfg.trace_stages:
             return
         x0 = standing_state().float()[None]
-        seg = x0[:, None].expand(1, self.motor.net.cfg.frames, STATE_DIM)
+        seg = x0[:, None].expand(1, cfg.frames, STATE_DIM)
         yes, no = torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
         for facing in (False, True):
             for past in (x0[:, None].expand(1, PAST, STATE_DIM), None):

@@ -48,6 +48,8 @@ class BatchSwitch:
             return self.small(t, x_t, *rest)
         with torch.autocast("cpu", dtype=torch.bfloat16):
             return self.net(t, x_t, *rest).float()
+
+
 log = logging.getLogger("avatar_motor.runtime")
 
 # the joints that carry a steering impulse: the whole body. The trunk alone (as in the
@@ -127,7 +129,7 @@ class Sampler:
             small = None if cfg.int8_weights or motor.net.cfg.persona else bf16_denoiser(motor.net)
             self.net = BatchSwitch(self.net, motor.net, cfg.bfloat16_from, small)
         # a few-step model's teacher for the segments after an impulse preset (impulse_teacher)
-        self.teacher = None  # (its batches are one avatar's: no bfloat16)
+        self.teacher = None  # (in float32: its batches are the few avatars just after a preset)
         if self.kind != "ddpm" and cfg.impulse_teacher > 0:
             base = _teacher(motor)
             # the teacher's rows are encoded and decoded with this model's normalisation, which
