@@ -34,6 +34,50 @@ def test_the_asset_is_a_body_in_our_t_pose_bound_to_our_joints():
         assert np.linalg.norm(hand.mean(0) - rest[JOINT_INDEX[f"{side}_wrist"]]) < 0.1
 
 
+def test_the_low_detail_body_is_the_same_body_in_fewer_triangles():
+    V, F, J, W = human_mesh()
+    tall = torch.tensor([1.5, 0.5, 0.0, -0.5, 0.0, 0.0])
+    for shape in (None, tall):
+        Vf, _, Jf, Wf = human_mesh(shape)
+        Vl, Fl, Jl, Wl = human_mesh(shape, "low")
+        assert 1500 <= len(Fl) <= 3000 and int(Fl.max()) == len(Vl) - 1 and len(np.unique(Fl)) == len(Vl)
+        assert not ((Fl[:, 0] == Fl[:, 1]) | (Fl[:, 1] == Fl[:, 2]) | (Fl[:, 0] == Fl[:, 2])).any()
+        assert len(np.unique(np.sort(Fl, 1), axis=0)) == len(Fl)  # no two triangles on the same vertices
+        # its vertices are vertices of the full body (fitted to the shape alike), with their weights
+        d = np.linalg.norm(Vf[:, None] - Vl[None], axis=-1)  # (13,380 x V') pairwise
+        nearest = d.argmin(0)
+        assert d.min(0).max() < 1e-6
+        assert (Jf[nearest] == Jl).all() and np.array_equal(Wf[nearest], Wl)
+        # and the coarse surface stays near the full one: every full vertex within a few cm of it
+        # (of points spread over its triangles)
+        b = torch.tensor([(i / 6, j / 6) for i in range(7) for j in range(7 - i)], dtype=torch.float64)
+        T = torch.from_numpy(Vl[Fl.astype(np.int64)]).double()  # (F', 3, 3)
+        S = (T[:, None, 0] + b[None, :, :1] * (T[:, None, 1] - T[:, None, 0]) + b[None, :, 1:] * (T[:, None, 2] - T[:, None, 0]))
+        S = S.reshape(-1, 3)
+        near = torch.cat([torch.cdist(torch.from_numpy(c).double(), S).min(1).values for c in np.array_split(Vf, 20)]).numpy()
+        assert np.percentile(near, 99) < 0.02 and near.max() < 0.05, (np.percentile(near, 99), near.max())
+        # the same extent: standing on the ground, as tall, hands as far out
+        assert np.abs(Vl.min(0) - Vf.min(0)).max() < 0.02 and np.abs(Vl.max(0) - Vf.max(0)).max() < 0.02
+    with pytest.raises(ValueError, match="detail"):
+        human_mesh(None, "medium")
+
+
+def test_low_detail_keeps_original_vertices_on_a_grid_mesh():
+    # a 30 x 30 grid of a bumpy sheet: the kept vertices are some of its own, the triangles index them
+    from avatar_motor.data.makehuman import low_detail
+    n = 30
+    x, z = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+    V = np.stack((x.ravel(), 0.05 * np.sin(6 * x.ravel()) * np.cos(5 * z.ravel()), z.ravel()), 1).astype(np.float32)
+    k = np.arange(n * n).reshape(n, n)
+    quads = np.stack((k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, 1:].ravel(), k[1:, :-1].ravel()), 1)
+    F = np.concatenate((quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]))
+    keep, tris = low_detail(V, F, target=300)
+    assert len(tris) <= 330 and len(np.unique(keep)) == len(keep) and int(tris.max()) == len(keep) - 1
+    assert keep.min() >= 0 and keep.max() < len(V)
+    area = np.linalg.norm(np.cross(V[keep][tris[:, 1]] - V[keep][tris[:, 0]], V[keep][tris[:, 2]] - V[keep][tris[:, 0]]), axis=1).sum() / 2
+    assert abs(area - 1.0) < 0.05  # still the whole sheet
+
+
 def test_the_body_follows_the_shape_parameters():
     V0 = human_mesh()[0]
     tall = torch.zeros(SHAPE_DIM)
@@ -107,9 +151,10 @@ def test_gltf_export_skins_the_human_on_the_joint_nodes(tmp_path):
 
 @pytest.mark.skipif(not (shutil.which("node") and (ROOT / "web" / "node_modules" / "gltf-validator").exists()),
                     reason="node and the web packages (make web) are needed for the Khronos validator")
-def test_the_khronos_validator_accepts_the_skinned_export(tmp_path):
+@pytest.mark.parametrize("detail", ["full", "low"])
+def test_the_khronos_validator_accepts_the_skinned_export(tmp_path, detail):
     path = tmp_path / "walk.glb"
-    write_glb(path, _motion(), torch.tensor([0.5, 0.0, -0.5, 0.5, 0.0, 0.0]))
+    write_glb(path, _motion(), torch.tensor([0.5, 0.0, -0.5, 0.5, 0.0, 0.0]), detail=detail)
     run = subprocess.run(["node", str(VALIDATOR), str(path)], capture_output=True, text=True, timeout=120)
     report = json.loads(run.stdout)
     assert report["errors"] == 0 and report["warnings"] == 0, report["messages"][:10]

@@ -352,12 +352,16 @@ def test_record_and_events_downloads(server):
         ev = json.loads(r.read())
     assert ev["version"] == 1 and isinstance(ev["events"], list)
     with urllib.request.urlopen(f"{base}/api/human?avatar=0", timeout=30) as r:  # the studio's skinned human
-        assert r.read().startswith(b"glTF") and r.headers["Content-Type"] == "model/gltf-binary"
+        full = r.read()
+        assert full.startswith(b"glTF") and r.headers["Content-Type"] == "model/gltf-binary"
+    with urllib.request.urlopen(f"{base}/api/human?avatar=0&detail=low", timeout=30) as r:  # its low quality's
+        low = r.read()
+        assert low.startswith(b"glTF") and len(low) < len(full) / 4
     with urllib.request.urlopen(f"{base}/api/record?avatar=0&seconds=1&format=bvh&skeleton=ue5", timeout=30) as r:
         assert b"JOINT thigh_l" in r.read()  # Unreal's names
     import urllib.error
     for bad in ("record?avatar=0&format=fbx&seconds=0", "record?avatar=0&format=obj", "record?avatar=0&skeleton=maya",
-                "human?avatar=99", "human?avatar=x"):  # each named in a 400, the server goes on
+                "human?avatar=99", "human?avatar=x", "human?avatar=0&detail=medium"):  # each named in a 400, the server goes on
         with pytest.raises(urllib.error.HTTPError) as e:
             urllib.request.urlopen(f"{base}/api/{bad}", timeout=10)
         assert e.value.code == 400

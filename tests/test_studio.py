@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from avatar_motor.eval.studio_bench import ARGS
 from avatar_motor.runtime.crowd import RuntimeConfig
 from avatar_motor.serve.server import STATIC
 from avatar_motor.serve.world import World
@@ -15,8 +16,6 @@ from .conftest_models import shipped_or_tiny
 from .test_server import Running
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-gpu", "--use-gl=swiftshader", "--enable-unsafe-swiftshader", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 needs_chromium = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian chromium not installed (make test installs it)")
 
 
@@ -52,10 +51,14 @@ def press(page, selector: str) -> None:
 @needs_chromium
 def test_studio_in_chromium(tmp_path, artifacts):
     world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
-    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+    # in high quality (asked for: this browser's GL is software, where the studio would choose low)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)",
+                     query="quality=high") as page:
+        assert page.evaluate("window.studio.quality") == "high"
         # drawn as the skinned human, fitted to its body by the server (/api/human) and posed from
         # the stream; the figures below are read once it draws (loading it takes the page a moment)
         page.wait_for_function("window.studio.humans().includes(0)", timeout=60000)
+        assert page.evaluate("window.studio.triangles(0)") == 26756  # the full body in high quality
         time.sleep(1.5)
         f0, j0 = page.evaluate("[window.studio.frame, window.studio.joints(0)]")
         time.sleep(1.0)
@@ -142,7 +145,10 @@ def test_shipped_family_in_the_studio():
     reach = next(ad for ad in adaptors if ad.cfg.control == "target")
     world = World(motor, RuntimeConfig(), seed=0, adaptors=adaptors)
     head = JOINT_INDEX["head"]
-    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+    # in high quality (asked for: this browser's GL is software, where the studio would choose low)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)",
+                     query="quality=high") as page:
+        assert page.evaluate("window.studio.quality") == "high"
         groups = page.eval_on_selector_all("#labels .group", "gs => gs.map(g => g.dataset.adaptor)")
         assert sorted(groups) == sorted(ad.name for ad in adaptors if ad.cfg.control == "label")
         assert f"reaching adaptor ({reach.name})" in page.text_content("#magnet-mode")
@@ -209,7 +215,10 @@ def test_physics_in_the_studio(tmp_path, artifacts):
     from avatar_motor.body.skeleton import JOINT_INDEX
     world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
     jump = "(() => { const a = window.studio.joints(0); return a; })()"
-    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+    # in high quality (asked for: this browser's GL is software, where the studio would choose low)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)",
+                     query="quality=high") as page:
+        assert page.evaluate("window.studio.quality") == "high"
 
         def largest_step(seconds: float) -> float:
             """The largest frame-to-frame joint move (m) the page shows over `seconds`."""
@@ -323,7 +332,10 @@ def test_obstacles_and_a_tilted_ground_in_the_studio(tmp_path, artifacts):
     lifts its feet over it; the tilt slider tilts the ground under it, and the page draws that."""
     from avatar_motor.body.motion_state import joints_of
     world = World(shipped_or_tiny(tmp_path), RuntimeConfig(), seed=0)
-    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+    # in high quality (asked for: this browser's GL is software, where the studio would choose low)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)",
+                     query="quality=high") as page:
+        assert page.evaluate("window.studio.quality") == "high"
         px, _, pz = page.evaluate("window.studio.pelvis(0)")
         press(page, "#obstacle")
         page.fill("#obstacle-height", "0.2")
@@ -406,10 +418,13 @@ def test_a_crowd_of_personas_in_the_studio(tmp_path, artifacts):
 @needs_chromium
 def test_the_studio_draws_at_low_quality_without_a_gpu(tmp_path, artifacts):
     world = World(shipped_or_tiny(tmp_path), RuntimeConfig())
-    with studio_page(world, "window.studio && window.studio.received > 10 && window.studio.renderTimes.length > 0",
-                     query="quality=low") as page:
+    # no ?quality=: the studio sees software GL (SwiftShader) and chooses low quality itself
+    with studio_page(world, "window.studio && window.studio.received > 10 && window.studio.renderTimes.length > 0") as page:
         assert page.evaluate("window.studio.quality") == "low"
         drawn = page.evaluate("window.studio.renderTimes.length")
         page.wait_for_function("window.studio.renderTimes.length > 0 && window.studio.frame > 30", timeout=30000)
         assert drawn > 0 and page.evaluate("window.studio.joints()") is not None  # an avatar is drawn and posed
+        # as the low-detail human (/api/human?detail=low), where high quality draws the full body
+        page.wait_for_function("window.studio.humans().includes(0)", timeout=60000)
+        assert 1000 <= page.evaluate("window.studio.triangles(0)") <= 3000
         page.screenshot(path=str(artifacts / "studio-low.png"))

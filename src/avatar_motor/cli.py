@@ -463,8 +463,9 @@ def _serve(a) -> int:
         v = getattr(a, name)
         if v is not None and not 1 <= v <= MAX_AVATARS:
             raise ValueError(f"--{name.replace('_', '-')} must be 1..{MAX_AVATARS}, got {v}")
+    row = min(a.avatars, 12)  # in rows of 12, 1.2 m apart, each row 1.5 m behind the one before
     for k in range(a.avatars):
-        world.apply({"type": "spawn", "position": [1.2 * k - 0.6 * (a.avatars - 1), 0.0]}, log=False)
+        world.apply({"type": "spawn", "position": [1.2 * (k % row) - 0.6 * (row - 1), 1.5 * (k // row)]}, log=False)
     if a.headless:
         return _serve_headless(a, world)
     from .serve.server import Server
@@ -612,6 +613,12 @@ def _bench(a) -> int:
         if a.soak <= 0 or not 1 <= a.avatars <= 512 or not 1 <= a.clients <= 64:
             raise ValueError("--soak SECONDS > 0, --avatars 1..512, --clients 1..64")
         print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png, _serve_args(a)), flush=True)
+        return 0
+    if a.studio:
+        from .eval.studio_bench import studio_bench
+        if not 1 <= a.avatars <= 512 or a.seconds <= 0:
+            raise ValueError("--studio: --avatars 1..512, --seconds > 0")
+        print(studio_bench(a.model, a.avatars, a.seconds, a.quality, a.png, _serve_args(a)), flush=True)
         return 0
     if a.serve:
         from .eval.serve_bench import serve_bench
@@ -1087,9 +1094,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--serve", action="store_true", help="measure a served world through the socket instead")
     b.add_argument("--soak", type=float, metavar="SECONDS", help="a served world watched for this long: frames/s per "
                    "client, server memory, stalls, NaN, idle drift")
-    b.add_argument("--avatars", type=int, default=8, help="with --soak")
+    b.add_argument("--studio", action="store_true", help="the studio in headless Chromium (software GL) with --avatars "
+                   "avatars: frames/s received and drawn, stalled ticks, a screenshot (--png)")
+    b.add_argument("--seconds", type=float, default=20.0, help="with --studio: how long it is watched")
+    b.add_argument("--quality", choices=("low", "high"), default="low", help="with --studio: the studio's ?quality=")
+    b.add_argument("--avatars", type=int, default=8, help="with --soak and --studio")
     b.add_argument("--clients", type=int, default=4, help="with --soak")
-    b.add_argument("--png", help="with --soak: plot of frames/s and memory over time")
+    b.add_argument("--png", help="with --soak: plot of frames/s and memory over time; with --studio: the screenshot")
     _add_runtime_args(b)
     b.set_defaults(func=_bench)
     return p

@@ -9,11 +9,27 @@ const token = params.get("token");
 const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${token ? "?token=" + encodeURIComponent(token) : ""}`;
 
 // ---------------------------------------------------------------- scene
-// ?quality=low: no antialiasing and no shadows, for a browser without a GPU (software GL drew
-// twice the frames with 8 avatars)
-const QUALITY = params.get("quality") === "low" ? "low" : "high";
-const renderer = new THREE.WebGLRenderer({ antialias: QUALITY === "high", preserveDrawingBuffer: true });
-renderer.setPixelRatio(QUALITY === "high" ? window.devicePixelRatio : Math.min(1, window.devicePixelRatio));
+// Low quality, for a browser without a GPU: no antialiasing, no shadows, Lambert shading and the
+// human's coarse mesh (/api/human?detail=low). Software GL (headless Chromium, 2 cores) drew 8
+// skinned humans at 2-3 frames/s in high quality; without antialiasing and shadows 6-7; the
+// full-screen floor alone took ~40 ms a frame with physically based shading, ~20 with Lambert.
+// Also 3/4 of the resolution, and the drawing buffer not kept after each frame (each of the two
+// gave about 6 frames/s more there, where 8 humans then drew at 30).
+// ?quality=low|high chooses; without it, low where WebGL is software (SwiftShader, llvmpipe)
+function softwareGL() {
+  const gl = document.createElement("canvas").getContext("webgl2") || document.createElement("canvas").getContext("webgl");
+  if (!gl) return true;
+  const info = gl.getExtension("WEBGL_debug_renderer_info");
+  const name = String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER));
+  gl.getExtension("WEBGL_lose_context")?.loseContext();
+  return /swiftshader|llvmpipe|softpipe|software/i.test(name);
+}
+const QUALITY = ["low", "high"].includes(params.get("quality")) ? params.get("quality") : softwareGL() ? "low" : "high";
+// a surface's material: physically based, or Lambert in low quality
+const surface = (opts) => QUALITY === "low" ? new THREE.MeshLambertMaterial({ color: opts.color, emissive: opts.emissive })
+  : new THREE.MeshStandardMaterial(opts);
+const renderer = new THREE.WebGLRenderer({ antialias: QUALITY === "high", preserveDrawingBuffer: QUALITY === "high" });
+renderer.setPixelRatio(QUALITY === "high" ? window.devicePixelRatio : Math.min(0.75, window.devicePixelRatio));
 renderer.shadowMap.enabled = QUALITY !== "low";
 $("view").appendChild(renderer.domElement);
 const scene = new THREE.Scene();
@@ -31,14 +47,17 @@ sun.castShadow = true;
 sun.shadow.mapSize.set(2048, 2048);
 Object.assign(sun.shadow.camera, { left: -6, right: 6, top: 6, bottom: -6, near: 0.5, far: 30 });
 scene.add(sun, sun.target);
-const ground = new THREE.Mesh(new THREE.PlaneGeometry(200, 200), new THREE.MeshStandardMaterial({ color: 0x3a434d, roughness: 0.95 }));
+const ground = new THREE.Mesh(new THREE.PlaneGeometry(200, 200), surface({ color: 0x3a434d, roughness: 0.95 }));
 ground.rotation.x = -Math.PI / 2;
 ground.receiveShadow = true;
 scene.add(ground);
-const grid = new THREE.GridHelper(200, 200, 0x59646f, 0x48525c);
+// a 1-m grid around the camera's target (moved in whole metres, so its lines stay put on the
+// floor), out to where the fog hides it (45 m); in high quality a wider one
+const GRID = QUALITY === "low" ? 90 : 120;
+const grid = new THREE.GridHelper(GRID, GRID, 0x59646f, 0x48525c);
 grid.position.y = 0.002;
 scene.add(grid);
-const magnetMesh = new THREE.Mesh(new THREE.TorusGeometry(0.25, 0.04, 8, 32), new THREE.MeshStandardMaterial({ color: 0xff9040, emissive: 0x552200 }));
+const magnetMesh = new THREE.Mesh(new THREE.TorusGeometry(0.25, 0.04, 8, 32), surface({ color: 0xff9040, emissive: 0x552200 }));
 magnetMesh.rotation.x = Math.PI / 2;
 magnetMesh.visible = false;
 scene.add(magnetMesh);
@@ -61,9 +80,12 @@ const UP = new THREE.Vector3(0, 1, 0);
 
 // every avatar's joints and bones drawn as two instanced meshes (two draw calls and their shadows
 // for any crowd): one mesh per joint and bone had 128 avatars issue 11,000 draw calls a frame
-const JOINT_GEO = new THREE.SphereGeometry(1, 12, 8);
-const BONE_GEO = new THREE.CylinderGeometry(1, 1, 1, 10);
-const BODY_MAT = new THREE.MeshStandardMaterial({ roughness: 0.55, metalness: 0.05 });
+// (in low quality, joints as octahedra and bones as open prisms: with spheres of 12 x 8 and
+// cylinders of 10 sides a capsule figure is ~5,000 triangles, more than the low-detail human,
+// and 112 of them held software GL at 5 frames/s)
+const JOINT_GEO = QUALITY === "low" ? new THREE.OctahedronGeometry(1) : new THREE.SphereGeometry(1, 12, 8);
+const BONE_GEO = QUALITY === "low" ? new THREE.CylinderGeometry(1, 1, 1, 4, 1, true) : new THREE.CylinderGeometry(1, 1, 1, 10);
+const BODY_MAT = surface({ roughness: 0.55, metalness: 0.05 });
 const _m = new THREE.Matrix4(), _q = new THREE.Quaternion(), _a = new THREE.Vector3(), _b = new THREE.Vector3(),
   _d = new THREE.Vector3(), _s = new THREE.Vector3(), _c = new THREE.Color();
 
@@ -146,7 +168,7 @@ class CrowdView {
 // the server (/api/human: a .glb of its skeleton and skinned mesh) and posed from the stream's
 // rotations (joint 0 the pelvis's global rotation and position, the others relative to their
 // parent, as the glTF's joint nodes take them); the rest of a crowd is drawn as capsules
-const HUMANS = 16;
+const HUMANS = QUALITY === "low" ? 8 : 16;
 const loader = new GLTFLoader();
 class HumanView {
   constructor() { this.humans = new Map(); this.loading = new Set(); this.enabled = true; }
@@ -165,7 +187,7 @@ class HumanView {
     for (const id of want) {
       if (this.humans.has(id) || this.loading.has(id) || !JOINTS.length) continue;
       this.loading.add(id);
-      loader.load(`/api/human?avatar=${id}${token ? "&token=" + encodeURIComponent(token) : ""}`, (gltf) => {
+      loader.load(`/api/human?avatar=${id}${QUALITY === "low" ? "&detail=low" : ""}${token ? "&token=" + encodeURIComponent(token) : ""}`, (gltf) => {
         this.loading.delete(id);
         if (!bodies.has(id) || !this.enabled) return;
         const root = gltf.scene;
@@ -173,7 +195,7 @@ class HumanView {
         let mesh = null;
         root.traverse((o) => { if (o.isSkinnedMesh) { mesh = o; o.castShadow = true; o.frustumCulled = false; } });
         if (!mesh || bones.some((b) => !b)) { state.errors.push(`avatar ${id}: the human's skeleton is incomplete`); return; }
-        mesh.material = mesh.material.clone();
+        mesh.material = QUALITY === "low" ? new THREE.MeshLambertMaterial({ color: mesh.material.color }) : mesh.material.clone();
         mesh.material.color.lerp(_c.setHex(COLORS[id % COLORS.length]), 0.25);  // each avatar's colour, lightly
         scene.add(root);
         this.humans.set(id, { root, bones, mesh });
@@ -214,10 +236,12 @@ const bodies = new Map();
 
 // ---------------------------------------------------------------- connection
 const state = { frame: 0, connected: false, fpsTimes: [], renderTimes: [], selected: 0, model: "", lastStats: null,
-  received: 0, errors: [], stalls: 0, stallsRecent: 0, physics: new Set(), balls: [] };
+  received: 0, drawn: 0, errors: [], stalls: 0, stallsRecent: 0, physics: new Set(), balls: [] };
 window.studio = state;  // for tests and the console
 state.quality = QUALITY;
 state.humans = () => [...humans.humans.keys()];  // the avatars drawn as skinned humans
+state.maxHumans = HUMANS;
+state.triangles = (id) => humans.humans.has(id) ? humans.humans.get(id).mesh.geometry.index.count / 3 : 0;
 let ws;
 let nextId = 1;
 const pending = new Map();
@@ -428,7 +452,7 @@ $("unmagnet").onclick = () => { magnetMesh.visible = false; send({ type: "target
 
 // ---------------------------------------------------------------- physics: toggle, balls, springs
 const ballMeshes = [];
-const BALL_MAT = new THREE.MeshStandardMaterial({ color: 0xe8e0c8, roughness: 0.6 });
+const BALL_MAT = surface({ color: 0xe8e0c8, roughness: 0.6 });
 function drawBalls(balls) {
   while (ballMeshes.length < balls.length) {
     const m = new THREE.Mesh(new THREE.SphereGeometry(1, 16, 12), BALL_MAT);
@@ -471,7 +495,7 @@ $("throw").onclick = () => state.throwBall();
 
 // ---------------------------------------------------------------- physics: the ground and obstacles
 // drawn as the server describes them (welcome, `environment`, each stats message)
-const OBSTACLE_MAT = new THREE.MeshStandardMaterial({ color: 0x9a6a44, roughness: 0.8 });
+const OBSTACLE_MAT = surface({ color: 0x9a6a44, roughness: 0.8 });
 const obstacleMeshes = [];
 let environmentKey = "";
 function drawEnvironment(env) {
@@ -671,6 +695,7 @@ function animate(t) {
     camera.position.add(delta);
     sun.position.set(target.x + 4, 8, target.z + 3);
     sun.target.position.copy(target);
+    grid.position.set(Math.round(orbit.target.x), grid.position.y, Math.round(orbit.target.z));
   }
   if (t - lastPad > 150 && navigator.getGamepads && [...navigator.getGamepads()].some(Boolean)) { lastPad = t; steer(); }
   orbit.update();
@@ -678,6 +703,7 @@ function animate(t) {
   view.draw(humans.others(bodies));
   renderer.render(scene, camera);
   state.renderTimes.push(t);
+  state.drawn += 1;
   while (state.renderTimes.length && t - state.renderTimes[0] > 1000) state.renderTimes.shift();
   $("fps").textContent = state.fpsTimes.length;
   $("drawn").textContent = state.renderTimes.length;

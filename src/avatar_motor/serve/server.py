@@ -223,8 +223,12 @@ class Server:
     async def human(self, request):
         """?avatar=ID: the skinned human fitted to that avatar's body (body/human.py) as a .glb of
         its skeleton in its current pose, for the studio to drive from the stream; cached per body
-        shape (fitting takes ~0.1 s)."""
+        shape (fitting takes ~0.1 s). &detail=low: the coarser mesh (the studio's low quality)."""
+        from ..body.human import DETAILS
         from ..io.gltf import write_glb
+        detail = request.query.get("detail", "full")
+        if detail not in DETAILS:
+            raise web.HTTPBadRequest(text=f"detail must be one of {list(DETAILS)}, got {detail!r}")
         try:
             i = int(request.query.get("avatar", "0"))
             X = self.world.recording(i, 1.0 / FPS)
@@ -234,7 +238,7 @@ class Server:
 
         def glb() -> bytes:
             buf = io.BytesIO()
-            write_glb(buf, X, shape)
+            write_glb(buf, X, shape, detail=detail)
             return buf.getvalue()
         body = await asyncio.get_running_loop().run_in_executor(None, glb)
         return web.Response(body=body, content_type="model/gltf-binary")
