@@ -1,14 +1,17 @@
 """Run inside Blender (tests/test_blender.py): imports one BVH, glTF or FBX file into an empty
 scene at 30 frames/s and prints, as one line "READ {json}", the joints it holds (armature bones or
-glTF nodes), the number of frames of its animation, and every joint's world position at the frames
-asked for, in our axes (Blender's Z-up scene turned back to Y up)."""
+glTF nodes), the number of frames of its animation, every joint's world position at the frames
+asked for, in our axes (Blender's Z-up scene turned back to Y up), and, for a skinned mesh, the
+bounding box of its vertices as Blender deforms them at those frames. With a third argument, a
+.png path, it also renders the last of those frames there (Workbench, a camera at the body's side)."""
 import builtins
 import json
 import sys
 
 import bpy
 
-path, frames = sys.argv[sys.argv.index("--") + 1:]
+args = sys.argv[sys.argv.index("--") + 1:]
+path, frames, png = args[0], args[1], (args[2] if len(args) > 2 else None)
 frames = [int(f) for f in frames.split(",")]
 bpy.ops.wm.read_factory_settings(use_empty=True)
 scene = bpy.context.scene
@@ -50,4 +53,29 @@ else:  # our glTF: a node per joint, its mesh parts as children named after it
     for f in frames:
         scene.frame_set(int(first) + f)
         out["positions"][f] = {o.name: ours(o.matrix_world.translation) for o in joints}
+skinned = [o for o in scene.objects if o.type == "MESH" and any(m.type == "ARMATURE" for m in o.modifiers)]
+if skinned:
+    out["mesh_box"] = {}
+    for f in frames:
+        scene.frame_set(int(first) + f)
+        deps = bpy.context.evaluated_depsgraph_get()
+        ob = skinned[0].evaluated_get(deps)
+        P = [ours(ob.matrix_world @ v.co) for v in ob.to_mesh().vertices]
+        out["mesh_box"][f] = [[min(p[k] for p in P) for k in range(3)], [max(p[k] for p in P) for k in range(3)]]
+        ob.to_mesh_clear()
+if png:
+    import mathutils
+    scene.frame_set(int(first) + frames[-1])
+    lo, hi = out["mesh_box"][frames[-1]] if skinned else ([0, 0, 0], [0, 1.8, 0])
+    c = mathutils.Vector(((lo[0] + hi[0]) / 2, -(lo[2] + hi[2]) / 2, (lo[1] + hi[1]) / 2))  # back to Blender's axes
+    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    scene.collection.objects.link(cam)
+    cam.location = c + mathutils.Vector((3.2, -3.2, 0.3))
+    cam.rotation_euler = (c - cam.location).to_track_quat("-Z", "Y").to_euler()
+    scene.camera = cam
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.display.shading.light = "STUDIO"
+    scene.render.resolution_x, scene.render.resolution_y = 480, 480
+    scene.render.filepath = png
+    bpy.ops.render.render(write_still=True)
 print("READ " + json.dumps(out))

@@ -85,6 +85,8 @@ def test_the_wheel_serves_the_studio_and_runs_the_api_in_a_fresh_environment(tmp
         assert "avatar-motor studio" in page
         info = urllib.request.urlopen(f"http://127.0.0.1:{port}/api/info", timeout=5).read().decode()
         assert "primal-bandai-emdm" in info
+        human = urllib.request.urlopen(f"http://127.0.0.1:{port}/api/human?avatar=0&detail=low", timeout=30).read()
+        assert human.startswith(b"glTF")  # the skinned human's asset, with its low detail, in the wheel
     finally:
         server.terminate()
         server.wait(10)

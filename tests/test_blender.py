@@ -32,9 +32,10 @@ def _walk(tmp_path, frames=45):
     return X, shape
 
 
-def _read(path: Path) -> dict:
+def _read(path: Path, png: Path | None = None) -> dict:
     run = subprocess.run([BLENDER, "-b", "--factory-startup", "-noaudio", "--python", str(READER), "--", str(path),
-                          ",".join(map(str, FRAMES))], capture_output=True, text=True, timeout=300)
+                          ",".join(map(str, FRAMES)), *([str(png)] if png else [])], capture_output=True, text=True,
+                         timeout=300)
     lines = [ln for ln in run.stdout.splitlines() if ln.startswith("READ ")]
     assert lines, f"Blender read nothing from {path.name} (exit {run.returncode}):\n{(run.stdout + run.stderr)[-2000:]}"
     return json.loads(lines[-1][len("READ "):])
@@ -54,6 +55,24 @@ def test_blender_reads_our_exports_as_our_body(tmp_path, suffix, skeleton):
     worst = max(abs(got["positions"][str(f)][n][k] - float(J[f, j, k]))
                 for f in FRAMES for j, n in enumerate(names) for k in range(3))
     assert worst < 1e-3, f"{path.name}: a joint {worst * 1000:.2f} mm from our FK"
+
+
+@needs_blender
+def test_blender_skins_our_human_around_our_joints(tmp_path, artifacts):
+    # the skinned human of a glTF export, deformed by Blender's own skinning mid-walk: its
+    # vertices surround the joints of our FK (the head's top above the head joint, the soles at
+    # the ground), so Blender poses the mesh as the studio does; rendered for a look
+    X, shape = _walk(tmp_path)
+    path = write_motion(tmp_path / "walk.glb", X, shape)
+    got = _read(path, artifacts / "blender-walk.png")
+    J = joints_of(X.double())
+    for f in FRAMES:
+        lo, hi = (torch.tensor(v, dtype=torch.float64) for v in got["mesh_box"][str(f)])
+        jlo, jhi = J[f].min(0).values, J[f].max(0).values
+        assert (lo <= jlo + 0.01).all() and (hi >= jhi - 0.01).all(), (f, lo, hi, jlo, jhi)  # the joints inside
+        assert (jlo - lo).max() < 0.3 and (hi - jhi).max() < 0.3, (f, lo, hi, jlo, jhi)  # and the mesh close about them
+        assert abs(float(lo[1])) < 0.05  # on the ground
+    assert (artifacts / "blender-walk.png").stat().st_size > 10_000
 
 
 def test_fbx_without_blender_names_the_package_and_writes_nothing(tmp_path, monkeypatch):
