@@ -26,7 +26,8 @@ function softwareGL() {
 }
 const QUALITY = ["low", "high"].includes(params.get("quality")) ? params.get("quality") : softwareGL() ? "low" : "high";
 // a surface's material: physically based, or Lambert in low quality
-const surface = (opts) => QUALITY === "low" ? new THREE.MeshLambertMaterial({ color: opts.color, emissive: opts.emissive })
+const surface = (opts) => QUALITY === "low"  // (Lambert takes the colours, not roughness or metalness)
+  ? new THREE.MeshLambertMaterial(Object.fromEntries(Object.entries(opts).filter(([k]) => k === "color" || k === "emissive")))
   : new THREE.MeshStandardMaterial(opts);
 const renderer = new THREE.WebGLRenderer({ antialias: QUALITY === "high", preserveDrawingBuffer: QUALITY === "high" });
 renderer.setPixelRatio(QUALITY === "high" ? window.devicePixelRatio : Math.min(0.75, window.devicePixelRatio));
