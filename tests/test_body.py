@@ -1,4 +1,5 @@
 import itertools
+import math
 
 import pytest
 import torch
@@ -136,6 +137,39 @@ def test_fk_batched_any_shape_and_dtype():
     P = rest_positions(off)
     J, _ = forward_kinematics(P[0], torch.eye(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64).repeat(21, 1, 1), off)
     assert torch.allclose(J, P)
+
+
+def test_fk_equals_the_joint_by_joint_recursion():
+    """forward_kinematics (pointer jumping for the rotations, one ancestry product for the
+    positions) against the textbook recursion G_j = G_p L_j, P_j = P_p + G_p o_j."""
+    g = torch.Generator().manual_seed(1)
+    lead = (3, 5)
+    rr = rot.axis_angle_to_matrix(torch.randn(*lead, 3, generator=g, dtype=torch.float64))
+    lr = rot.axis_angle_to_matrix(torch.randn(*lead, 21, 3, generator=g, dtype=torch.float64))
+    root = torch.randn(*lead, 3, generator=g, dtype=torch.float64)
+    off = rest_offsets(torch.randn(*lead, SHAPE_DIM, generator=g), torch.float64)
+    G, P = [rr], [root]
+    for j in range(1, 22):
+        p = PARENTS[j]
+        G.append(G[p] @ lr[..., j - 1, :, :])
+        P.append(P[p] + (G[p] @ off[..., j, :, None])[..., 0])
+    J, Gs = forward_kinematics(root, rr, lr, off)
+    assert torch.allclose(Gs, torch.stack(G, -3), atol=1e-12) and torch.allclose(J, torch.stack(P, -2), atol=1e-12)
+    # the offsets may also be one skeleton for every frame
+    J1, _ = forward_kinematics(root, rr, lr, off[0, 0])
+    assert torch.allclose(J1[0, 0], J[0, 0], atol=1e-12)
+
+
+def test_matrix_to_quat_takes_each_of_shepperds_branches():
+    # the identity (trace largest) and half turns about X, Y, Z (each diagonal term largest in turn)
+    for aa, q in (([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]), ([math.pi, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]),
+                  ([0.0, math.pi, 0.0], [0.0, 0.0, 1.0, 0.0]), ([0.0, 0.0, math.pi], [0.0, 0.0, 0.0, 1.0]),
+                  ([0.0, 0.0, -3.1], None), ([2.0, -1.0, 0.5], None)):
+        R = rot.axis_angle_to_matrix(torch.tensor(aa, dtype=torch.float64))
+        got = rot.matrix_to_quat(R)
+        assert torch.allclose(rot.quat_to_matrix(got), R, atol=1e-12)
+        if q is not None:
+            assert torch.allclose(got.abs(), torch.tensor(q, dtype=torch.float64), atol=1e-12)
 
 
 def test_shape_validation():

@@ -88,7 +88,7 @@ def motion_of(states: torch.Tensor, shape: torch.Tensor | None = None) -> Motion
     """A Motion from runtime states (T, 267)."""
     states = states.float()
     u = unpack(states)
-    R = torch.cat((u.root_rot[:, None], u.local_rot), 1)  # (T, 22, 3, 3)
+    R = u.rotations  # (T, 22, 3, 3)
     return Motion(u.joints.clone(), rot.matrix_to_quat(R), torch.zeros(6) if shape is None else shape.float(), states)
 
 

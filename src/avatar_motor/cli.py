@@ -1088,7 +1088,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="per-segment timings (Table A6), crowd throughput, reaction latency")
     b.add_argument("--model", default=str(DEFAULT_MODEL))
     b.add_argument("--baseline", default=str(BASE_MODEL), help="the DDPM base the ratios are taken to (8 steps)")
-    b.add_argument("--segments", type=int, default=10)
+    b.add_argument("--segments", type=int, default=20)
     b.add_argument("--threads", type=int)
     b.add_argument("--max-avatars", type=int, default=256)
     b.add_argument("--serve", action="store_true", help="measure a served world through the socket instead")

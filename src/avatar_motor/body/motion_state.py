@@ -32,6 +32,7 @@ SLICES = {
     "joints": slice(135, 201),
     "velocities": slice(201, 267),
 }
+_ROTATIONS = slice(SLICES["root_rot"].start, SLICES["local_rot"].stop)  # contiguous: the 22 rotations
 _LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
 
 
@@ -49,12 +50,20 @@ class Unpacked:
         self.velocities = x[..., SLICES["velocities"]].reshape(*lead, NUM_JOINTS, 3)
 
     @cached_property
+    def rotations(self) -> torch.Tensor:
+        """(..., 22, 3, 3): the root's global rotation and the 21 local ones, made in one call (their
+        6D channels are contiguous): at one avatar each call's dispatch costs more than its work."""
+        return rot.sixd_to_matrix(self.state[..., _ROTATIONS].reshape(*self.state.shape[:-1], NUM_JOINTS, 6))
+
+    @cached_property
     def root_rot(self) -> torch.Tensor:
+        if "rotations" in self.__dict__:
+            return self.rotations[..., 0, :, :]
         return rot.sixd_to_matrix(self.state[..., SLICES["root_rot"]])
 
     @cached_property
     def local_rot(self) -> torch.Tensor:
-        return rot.sixd_to_matrix(self.state[..., SLICES["local_rot"]].reshape(*self.state.shape[:-1], 21, 6))
+        return self.rotations[..., 1:, :, :]
 
 
 def pack(root_pos, root_rot, local_rot, joints, velocities) -> torch.Tensor:

@@ -37,6 +37,15 @@ def sixd_to_matrix(d6: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------- axis-angle
+def _cross_map() -> torch.Tensor:
+    """(3, 9): v @ it is [v]x flattened row by row, (0, -z, y, z, 0, -x, -y, x, 0)."""
+    C = torch.zeros(3, 9, dtype=torch.float64)
+    for i, j, k, sign in ((0, 1, 2, -1), (0, 2, 1, 1), (1, 0, 2, 1), (1, 2, 0, -1), (2, 0, 1, -1), (2, 1, 0, 1)):
+        C[k, 3 * i + j] = sign  # K[i, j] = sign * v[k]
+    return C
+
+
+_CROSS = _cross_map()
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula on the unnormalised axis K = [aa]x: R = I + sin(t)/t K + (1 - cos(t))/t^2 K^2,
     the two factors taken from their Taylor series near t = 0, where they are exact to the
@@ -47,9 +56,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     t2 = theta * theta
     a = torch.where(small, 1 - t2 / 6, torch.sin(th) / th)[..., None]
     b = torch.where(small, 0.5 - t2 / 24, (1 - torch.cos(th)) / (th * th))[..., None]
-    x, y, z = aa.unbind(-1)
-    zero = torch.zeros_like(x)
-    K = torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), -1).reshape(*aa.shape[:-1], 3, 3)
+    K = (aa @ _CROSS.to(aa.dtype)).reshape(*aa.shape[:-1], 3, 3)  # one product, not nine picked entries
     return torch.eye(3, dtype=aa.dtype, device=aa.device) + a * K + b * (K @ K)
 
 
@@ -89,21 +96,25 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     return R.reshape(*q.shape[:-1], 3, 3)
 
 
+# Shepperd's four candidate quaternions (4 x 4, rows) and the diagonal terms that choose among
+# them (trace, R00, R11, R22), each linear in R's 9 entries (row by row) plus a constant:
+# one product instead of some 60 picked entries and sums
+_SHEPPERD = torch.tensor([
+    # 1, R00, R01, R02, R10, R11, R12, R20, R21, R22
+    [1, 1, 0, 0, 0, 1, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 0, 1, 0, 0, 0, -1, 0, 0], [0, 0, -1, 0, 1, 0, 0, 0, 0, 0],
+    [0, 0, 0, 0, 0, 0, -1, 0, 1, 0], [1, 1, 0, 0, 0, -1, 0, 0, 0, -1], [0, 0, 1, 0, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 0, 0, 0, 1, 0, 0],
+    [0, 0, 0, 1, 0, 0, 0, -1, 0, 0], [0, 0, 1, 0, 1, 0, 0, 0, 0, 0], [1, -1, 0, 0, 0, 1, 0, 0, 0, -1], [0, 0, 0, 0, 0, 0, 1, 0, 1, 0],
+    [0, 0, -1, 0, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 0, 1, 0, 1, 0], [1, -1, 0, 0, 0, -1, 0, 0, 0, 1],
+    [0, 1, 0, 0, 0, 1, 0, 0, 0, 1], [0, 1, 0, 0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0, 0, 0, 0, 1],
+], dtype=torch.float64)
+
+
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Shepperd's method (branch on the largest diagonal term), returns w >= 0."""
-    m = R
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    cands = torch.stack(
-        (
-            torch.stack((1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), -1),
-            torch.stack((m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]), -1),
-            torch.stack((m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]), -1),
-            torch.stack((m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]), -1),
-        ),
-        -2,
-    )  # (..., 4 candidates, 4)
-    diag = torch.stack((tr, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]), -1)
-    idx = diag.argmax(-1)
+    W = _SHEPPERD.to(R.dtype)
+    y = torch.nn.functional.linear(R.reshape(*R.shape[:-2], 9), W[:, 1:], W[:, 0])
+    cands = y[..., :16].reshape(*R.shape[:-2], 4, 4)  # (..., 4 candidates, 4)
+    idx = y[..., 16:].argmax(-1)
     q = torch.gather(cands, -2, idx[..., None, None].expand(*idx.shape, 1, 4)).squeeze(-2)
     q = normalize(q)
     return torch.where(q[..., :1] < 0, -q, q)

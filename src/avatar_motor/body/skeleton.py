@@ -127,19 +127,36 @@ def random_shapes(n: int, generator: torch.Generator | None = None, scale: float
     return (torch.randn(n, SHAPE_DIM, generator=generator) * scale).clamp(-2.5, 2.5)
 
 
-def _levels(parents: list[int]) -> list[tuple[int, int]]:
-    """The joints as runs [a, b) of equal depth in the tree. SMPL's order is breadth-first, so each
-    depth is one contiguous run: FK takes one batched step per depth (7) instead of per joint (21)."""
-    depth = [0] * len(parents)
-    for j in range(1, len(parents)):
-        depth[j] = depth[parents[j]] + 1
-    if depth != sorted(depth):
-        raise AssertionError("joints must be ordered breadth-first (each parent's depth before its children's)")
-    return [(depth.index(d), len(depth) - depth[::-1].index(d)) for d in range(1, max(depth) + 1)]
+def _jumps(parents: list[int]) -> list[torch.Tensor]:
+    """Pointer jumping over the tree, for global rotations in ceil(log2(depth + 1)) batched steps
+    (3 for SMPL's depth of 7) instead of one per depth: index n is a virtual identity above the
+    root; at each step every joint's rotation relative to its current ancestor is left-multiplied
+    by that ancestor's, and the ancestor becomes the ancestor's ancestor. The list holds each
+    step's ancestor indices."""
+    n = len(parents)
+    anc = [p if p >= 0 else n for p in parents] + [n]
+    steps = []
+    while any(a != n for a in anc):
+        steps.append(torch.tensor(anc))
+        anc = [anc[a] for a in anc]
+    return steps
 
 
-_LEVELS = _levels(PARENTS)
-_LEVEL_PARENTS = [torch.tensor(PARENTS[a:b]) for a, b in _LEVELS]
+def _ancestry(parents: list[int]) -> torch.Tensor:
+    """(22, 21): entry (j, k - 1) is 1 where joint k is j or on j's way to the root (k > 0), so that
+    a joint's position is the root's plus this row times the bone vectors of joints 1..21."""
+    A = torch.zeros(len(parents), len(parents) - 1, dtype=torch.float64)
+    for j in range(len(parents)):
+        k = j
+        while k > 0:
+            A[j, k - 1] = 1.0
+            k = parents[k]
+    return A
+
+
+_JUMPS = _jumps(PARENTS)
+_ANCESTRY = _ancestry(PARENTS)
+_BONE_PARENTS = torch.tensor(PARENTS[1:])
 
 
 def forward_kinematics(root_pos: torch.Tensor, root_rot: torch.Tensor, local_rot: torch.Tensor,
@@ -150,12 +167,17 @@ def forward_kinematics(root_pos: torch.Tensor, root_rot: torch.Tensor, local_rot
     local_rot (..., 21, 3, 3) rotations of joints 1..21 relative to their parents;
     offsets (..., 22, 3) or (22, 3) rest bone offsets (broadcast).
     Returns joint positions (..., 22, 3) and global rotations (..., 22, 3, 3).
+    Written as few batched operations as it can be (at one avatar each operation costs more to
+    dispatch than to compute): global rotations by pointer jumping (_jumps), then every bone
+    vector at once and the positions as one product with the ancestry matrix.
     """
-    offsets = offsets.to(root_pos.dtype).expand(*root_pos.shape[:-1], NUM_JOINTS, 3)
-    pos, glob = root_pos[..., None, :], root_rot[..., None, :, :]
-    for (a, b), par in zip(_LEVELS, _LEVEL_PARENTS):  # one depth of the tree at a time, parents placed
-        G = glob.index_select(-3, par)
-        # G @ offset written out: a batched 3x3 matmul costs more than its 9 products at these sizes
-        pos = torch.cat((pos, pos.index_select(-2, par) + (G * offsets[..., a:b, None, :]).sum(-1)), -2)
-        glob = torch.cat((glob, G @ local_rot[..., a - 1:b - 1, :, :]), -3)
+    eye = torch.eye(3, dtype=root_rot.dtype).expand(*root_rot.shape[:-2], 1, 3, 3)
+    glob = torch.cat((root_rot[..., None, :, :], local_rot, eye), -3)  # relative to the parent
+    for anc in _JUMPS:
+        glob = glob.index_select(-3, anc) @ glob
+    glob = glob[..., :NUM_JOINTS, :, :]
+    # each bone vector: its parent's global rotation times the rest offset, written out (a batched
+    # 3x3 matmul costs more than its 9 products at these sizes)
+    bones = (glob.index_select(-3, _BONE_PARENTS) * offsets.to(root_pos.dtype)[..., 1:, None, :]).sum(-1)
+    pos = root_pos[..., None, :] + _ANCESTRY.to(root_pos.dtype) @ bones
     return pos, glob

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import math
+import statistics
 import time
 
 import torch
@@ -173,7 +174,8 @@ def format_impulses(rows, what, n, seconds, body: dict) -> str:
 
 
 # ---------------------------------------------------------------- bench
-def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int, goal: bool, seed: int = 0) -> dict:
+def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, seed: int = 0) -> Crowd:
+    """A warmed crowd of `avatars` walking toward a goal (or free), as bench times it."""
     crowd = Crowd(motor, cfg, seed)
     ids = [crowd.spawn(position=(k, 0.0)) for k in range(avatars)]
     if goal:
@@ -186,12 +188,22 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
             crowd.set_persona(i, texts[k * 7 % len(texts)])
     crowd.warm()
     crowd.step_segment()  # warm-up
-    acc: dict[str, float] = {}
+    return crowd
+
+
+def _timed(crowd: Crowd, segments: int) -> list[dict]:
+    """crowd.timings of each of `segments` more segments."""
+    out = []
     for _ in range(segments):
         crowd.step_segment()
-        for k, v in crowd.timings.items():
-            acc[k] = acc.get(k, 0.0) + v
-    return {k: v / segments for k, v in acc.items()}
+        out.append(dict(crowd.timings))
+    return out
+
+
+def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int, goal: bool, seed: int = 0) -> dict:
+    """Mean timings of `segments` segments of a fresh crowd."""
+    runs = _timed(_timing_crowd(motor, cfg, avatars, goal, seed), segments)
+    return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0]}
 
 
 def _backend_name(cfg: RuntimeConfig) -> str:
@@ -201,7 +213,7 @@ def _backend_name(cfg: RuntimeConfig) -> str:
     return name
 
 
-def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 256,
+def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 256,
           runtime: RuntimeConfig | None = None, baseline: Motor | None = None, range_of_motion=None) -> str:
     """runtime: the configuration measured as the default (its backend also runs the crowd and
     reaction rows); the same settings on the other backend are timed in the same run. baseline:
@@ -240,17 +252,25 @@ def bench(motor: Motor, segments: int = 10, seed: int = 0, max_avatars: int = 25
     flipped = dataclasses.replace(default, trace_stages=not default.trace_stages)
     settings.append((f"{label} + proc. + CBG ({_backend_name(default)}, stages "
                      f"{'traced' if flipped.trace_stages else 'in Python'})", motor, flipped, True))
-    rows = []
-    for name, m, cfg, goal in settings:
-        t = _time_segments(m, cfg, 1, segments, goal, seed)
-        rows.append((name, t))
-    ref = rows[2 if default.backend == "torch" else 3][1]["total"]
+    # the settings take turns, a few segments each, so that each row sees the same swings of the
+    # host's speed (here up to 2x within minutes: a row timed alone read 0.15-0.29x of the same
+    # reference); each column is the median over all the row's segments, the last also the mean
+    crowds = [_timing_crowd(m, cfg, 1, goal, seed) for _, m, cfg, goal in settings]
+    rounds = max(1, -(-segments // 4))
+    runs: list[list[dict]] = [[] for _ in settings]
+    for _ in range(rounds):
+        for k, crowd in enumerate(crowds):
+            runs[k] += _timed(crowd, -(-segments // rounds))
+    med = [{key: statistics.median(r[key] for r in rs) for key in rs[0]} for rs in runs]
+    ref = med[2 if default.backend == "torch" else 3]["total"]
     out = [f"bench: {motor.name} (baseline {base.name}), {torch.get_num_threads()} threads, one avatar, "
-           f"ms per 0.5-s segment (mean of {segments})",
-           f"{'setting':50s} {'canon.':>7s} {'diffusion':>9s} {'post':>7s} {'total':>7s} {'vs DDPM 8':>10s}"]
-    for name, t in rows:
+           f"ms per 0.5-s segment (median of {len(runs[0])}, the settings in turns of {len(runs[0]) // rounds})",
+           f"{'setting':50s} {'canon.':>7s} {'diffusion':>9s} {'post':>7s} {'total':>7s} {'(mean)':>7s} {'vs DDPM 8':>10s}"]
+    for (name, *_), t, rs in zip(settings, med, runs):
+        mean = sum(r["total"] for r in rs) / len(rs)
         out.append(f"{name:50s} {t['canonicalize'] * 1e3:7.2f} {t['diffusion'] * 1e3:9.1f} {t['post'] * 1e3:7.2f} "
-                   f"{t['total'] * 1e3:7.1f} {t['total'] / ref:9.2f}x")
+                   f"{t['total'] * 1e3:7.1f} {mean * 1e3:7.1f} {t['total'] / ref:9.2f}x")
+    del crowds
     out.append(f"(vs DDPM 8: ratio to the 8-step DDPM before few-step sampling, with guidance and processing (stages in "
                f"Python), on {'torch' if default.backend == 'torch' else 'onnxruntime float32'}, this run)")
     out.append("(step 2, the condition embedding, runs inside the first network call and is part of 'diffusion')")

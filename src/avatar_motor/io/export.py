@@ -27,7 +27,7 @@ def canonical_bvh(states: torch.Tensor, shape: torch.Tensor | None = None, fps: 
     """A BVH object of the canonical skeleton from world states (T, 267), its joints named in the
     `skeleton` convention."""
     u = unpack(states.double())
-    local = torch.cat((u.root_rot[:, None], u.local_rot), 1)  # (T, 22, 3, 3)
+    local = u.rotations  # (T, 22, 3, 3)
     off = rest_offsets(shape, torch.float64).numpy() * BVH_SCALE
     ends = {JOINT_NAMES.index(n): np.array(v) * BVH_SCALE for n, v in LEAF_END_SITES.items()}
     return bvh_from_rotations(joint_names(skeleton), PARENTS, off, u.root_pos.numpy() * BVH_SCALE, local, 1.0 / fps, "ZXY",

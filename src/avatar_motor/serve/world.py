@@ -314,7 +314,7 @@ class World:
             return [], torch.zeros(0, 22, 3), torch.zeros(0, 22, 4)
         X = torch.stack([states[i] for i in ids])
         u = unpack(X)
-        R = torch.cat((u.root_rot[:, None], u.local_rot), 1)
+        R = u.rotations
         q = rot.matrix_to_quat(R)  # w, x, y, z
         return ids, u.joints, torch.cat((q[..., 1:], q[..., :1]), -1)
 
