@@ -173,7 +173,9 @@ class Sampler:
         if cfg.steer_impulse > 0 or cfg.turn_impulse > 0:
             self._steer(x0_cond, batch.v_goal, batch.facing_goal, Rt)
         cond = motor.norm.encode(x0_cond.float())
-        guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float())
+        # guidance acts between steps: a one-step chain has none (its goals steer through _steer)
+        steps = cfg.steps if self.kind == "ddpm" else ADAPTOR_STEPS if ddpm else cfg.steps
+        guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float()) if steps > 1 else None
         N = motor.net.cfg.frames
         denoise = self._denoiser(batch, tf, cond, adaptor, x0c)
         if cancelled is not None:
@@ -185,7 +187,6 @@ class Sampler:
                 return inner(x_t, t, z)
         shape = (len(batch), N, STATE_DIM)
         if ddpm:
-            steps = cfg.steps if self.kind == "ddpm" else ADAPTOR_STEPS
             seg_n = motor.diffusion.sample(denoise, shape, steps, batch.gens, guide, cfg.eta)
         else:
             seg_n = fewstep.sample(self.kind, motor.diffusion, denoise, shape, cfg.steps, batch.gens, guide,
