@@ -91,6 +91,8 @@ import json, sys, time
 from avatar_motor.client import Client
 with Client(sys.argv[1]) as v:
     v.drain()
+    next(iter(v.frames(1)))
+    print("receiving", flush=True)
     end = time.time() + float(sys.argv[2])
     arrivals = []
     while time.time() < end:
@@ -111,7 +113,9 @@ def test_a_flood_from_one_client_leaves_other_viewers_at_30fps(server):
     world = server.server.world
     events_before = world.events_total
     viewer = subprocess.Popen([sys.executable, "-c", VIEW, server.url, "6"], stdout=subprocess.PIPE, text=True)
-    time.sleep(2.0)  # the viewer is connected and receiving
+    # the viewer is connected and receiving (a fixed wait was too short on a loaded host: the flood
+    # was over before the viewer's first frame)
+    assert viewer.stdout.readline().strip() == "receiving"
     t0 = time.time()
     out = subprocess.run([sys.executable, "-c", FLOOD, server.url], capture_output=True, text=True, timeout=60).stdout.splitlines()
     arrivals = json.loads(viewer.communicate(timeout=60)[0])

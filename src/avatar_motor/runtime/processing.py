@@ -29,22 +29,27 @@ def _pack_moving(x0: torch.Tensor, root_pos, root_rot, local_rot, joints: torch.
 
 
 def _moved(x0: torch.Tensor, seg: torch.Tensor, root_pos: torch.Tensor, joints: torch.Tensor,
-           root_rot: torch.Tensor | None = None) -> torch.Tensor:
-    """seg (B, N, 267) with new root positions and joint locations (and root rotation), its local
-    rotations' channels kept as they are (no round trip through matrices), velocities the backward
-    differences of the new locations, the first from x0."""
+           root_6d: torch.Tensor | None = None) -> torch.Tensor:
+    """seg (B, N, 267) with new root positions and joint locations (and root rotation, 6D), its
+    local rotations' channels kept as they are (no round trip through matrices), velocities the
+    backward differences of the new locations, the first from x0."""
     B, N, _ = seg.shape
-    parts = [root_pos, rot.matrix_to_6d(root_rot) if root_rot is not None else seg[..., SLICES["root_rot"]],
+    parts = [root_pos, root_6d if root_6d is not None else seg[..., SLICES["root_rot"]],
              seg[..., SLICES["local_rot"]], joints.reshape(B, N, 66), _backward_velocities(x0, joints).reshape(B, N, 66)]
     return torch.cat(parts, -1)
 
 
 def _move_frames(x0: torch.Tensor, u, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Move each frame of an unpacked segment rigidly, p -> R p + t with R (B, N, 3, 3) and
-    t (B, N, 3); local rotations are kept and velocities recomputed."""
-    joints = u.joints @ R.transpose(-1, -2) + t[:, :, None]  # (a matmul: einsum took ~0.1 ms here at one avatar)
-    root_pos = (R @ u.root_pos[..., None])[..., 0] + t
-    return _moved(x0, u.state, root_pos, joints, R @ u.root_rot)
+    t (B, N, 3); local rotations are kept and velocities recomputed. The root's 6D channels (two
+    columns of its rotation) are turned as the vectors they are: no Gram-Schmidt, which commutes
+    with a rotation anyway."""
+    B, N = t.shape[:2]
+    Rt = R.transpose(-1, -2)
+    joints = u.joints @ Rt + t[:, :, None]  # (a matmul: einsum took ~0.1 ms here at one avatar)
+    root_pos = (u.root_pos[..., None, :] @ Rt)[..., 0, :] + t
+    root_6d = (u.state[..., SLICES["root_rot"]].reshape(B, N, 2, 3) @ Rt).reshape(B, N, 6)
+    return _moved(x0, u.state, root_pos, joints, root_6d)
 
 
 _LEGS = [tuple(JOINT_INDEX[f"{side}_{j}"] for j in ("hip", "knee", "ankle", "foot")) for side in ("left", "right")]
