@@ -48,16 +48,38 @@ sun.castShadow = true;
 sun.shadow.mapSize.set(2048, 2048);
 Object.assign(sun.shadow.camera, { left: -6, right: 6, top: 6, bottom: -6, near: 0.5, far: 30 });
 scene.add(sun, sun.target);
-const ground = new THREE.Mesh(new THREE.PlaneGeometry(200, 200), surface({ color: 0x3a434d, roughness: 0.95 }));
+// (unlit in low quality: software GL shades every pixel of it, and lit it cost about as much as
+// 120 capsule figures; it is one flat colour either way but for the shadows high quality casts)
+const ground = new THREE.Mesh(new THREE.PlaneGeometry(200, 200), QUALITY === "low"
+  ? new THREE.MeshBasicMaterial({ color: 0x353d46 }) : surface({ color: 0x3a434d, roughness: 0.95 }));
 ground.rotation.x = -Math.PI / 2;
 ground.receiveShadow = true;
 scene.add(ground);
-// a 1-m grid around the camera's target (moved in whole metres, so its lines stay put on the
-// floor), out to where the fog hides it (45 m); in high quality a wider one
-const GRID = QUALITY === "low" ? 90 : 120;
-const grid = new THREE.GridHelper(GRID, GRID, 0x59646f, 0x48525c);
-grid.position.y = 0.002;
+// a grid of 1-m squares around the camera's target (moved in whole metres, so its lines stay put
+// on the floor): 60 m across in low quality, 120 m in high (the fog hides the floor from 45 m).
+// Each line is made of short pieces: software GL dropped a whole line that reached behind the
+// camera, so GridHelper's 90-m lines showed only far off, none around the avatars. Low quality
+// draws fewer pieces (60 m of 2-m pieces: 3,700 instead of 16,000).
+function makeGrid(size, piece, centre, other) {
+  const half = size / 2, pos = [], col = [];
+  const c1 = new THREE.Color(centre), c2 = new THREE.Color(other);
+  for (let i = -half; i <= half; i++) {
+    const c = i === 0 ? c1 : c2;
+    for (let k = -half; k < half; k += piece) {
+      pos.push(i, 0, k, i, 0, k + piece, k, 0, i, k + piece, 0, i);  // a piece along Z at x = i, one along X at z = i
+      for (let n = 0; n < 4; n++) col.push(c.r, c.g, c.b);
+    }
+  }
+  const geo = new THREE.BufferGeometry();
+  geo.setAttribute("position", new THREE.Float32BufferAttribute(pos, 3));
+  geo.setAttribute("color", new THREE.Float32BufferAttribute(col, 3));
+  return new THREE.LineSegments(geo, new THREE.LineBasicMaterial({ vertexColors: true }));
+}
+const grid = QUALITY === "low" ? makeGrid(60, 2, 0x59646f, 0x48525c) : makeGrid(120, 1, 0x59646f, 0x48525c);
+grid.matrixAutoUpdate = false;  // placed in animate(): on the floor (groundFrame), under the camera's target
 scene.add(grid);
+let groundFrame = new THREE.Matrix4();  // the floor's turn (drawEnvironment: a tilted ground)
+const _gridAt = new THREE.Matrix4();
 const magnetMesh = new THREE.Mesh(new THREE.TorusGeometry(0.25, 0.04, 8, 32), surface({ color: 0xff9040, emissive: 0x552200 }));
 magnetMesh.rotation.x = Math.PI / 2;
 magnetMesh.visible = false;
@@ -79,90 +101,193 @@ let PARENTS = [];
 let JOINTS = [];
 const UP = new THREE.Vector3(0, 1, 0);
 
-// every avatar's joints and bones drawn as two instanced meshes (two draw calls and their shadows
-// for any crowd): one mesh per joint and bone had 128 avatars issue 11,000 draw calls a frame
-// (in low quality, joints as octahedra and bones as open prisms: with spheres of 12 x 8 and
-// cylinders of 10 sides a capsule figure is ~5,000 triangles, more than the low-detail human,
-// and 112 of them held software GL at 5 frames/s)
-const JOINT_GEO = QUALITY === "low" ? new THREE.OctahedronGeometry(1) : new THREE.SphereGeometry(1, 12, 8);
-const BONE_GEO = QUALITY === "low" ? new THREE.CylinderGeometry(1, 1, 1, 4, 1, true) : new THREE.CylinderGeometry(1, 1, 1, 10);
-const BODY_MAT = surface({ roughness: 0.55, metalness: 0.05 });
+// the bodies beyond the skinned humans, as capsule figures. High quality: every avatar's joints
+// and bones as two instanced meshes (two draw calls and their shadows for any crowd: one mesh per
+// joint and bone had 128 avatars issue 11,000 draw calls a frame). Low quality: one mesh whose
+// vertices are written here each frame (joints as octahedra, bones as open 4-sided prisms: with
+// spheres of 12 x 8 and cylinders of 10 sides a figure is ~5,000 triangles): software GL spent
+// ~20 us per instance of an instanced mesh whatever its size (128 avatars: 6.9 frames/s, and
+// ~13 without the joints' 2,816 instances), while 38,000 vertices in one mesh cost it little
+const JOINT_GEO = QUALITY === "low" ? null : new THREE.SphereGeometry(1, 12, 8);
+const BONE_GEO = QUALITY === "low" ? null : new THREE.CylinderGeometry(1, 1, 1, 10);
+const BODY_MAT = QUALITY === "low" ? new THREE.MeshLambertMaterial({ vertexColors: true }) : surface({ roughness: 0.55, metalness: 0.05 });
 const _m = new THREE.Matrix4(), _q = new THREE.Quaternion(), _a = new THREE.Vector3(), _b = new THREE.Vector3(),
-  _d = new THREE.Vector3(), _s = new THREE.Vector3(), _c = new THREE.Color();
+  _d = new THREE.Vector3(), _s = new THREE.Vector3(), _c = new THREE.Color(), _e1 = new THREE.Vector3(), _e2 = new THREE.Vector3(),
+  _onRay = new THREE.Vector3();
+const jointRadius = (j) => (j === 15 ? 0.11 : RADIUS[j] * 1.05);
+const boneRadius = (j, p) => Math.min(RADIUS[j], RADIUS[p]) * 0.9;
+// the merged mesh's layout per body: 22 octahedra (6 vertices, 8 triangles), then 21 prisms (8
+// vertices: 4 around each end; 8 triangles)
+const OCTA = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]];
+const OCTA_FACES = [0, 2, 4, 2, 1, 4, 1, 3, 4, 3, 0, 4, 2, 0, 5, 1, 2, 5, 3, 1, 5, 0, 3, 5];
+const PRISM_FACES = [];
+for (let i = 0; i < 4; i++) {  // side i: ends a_i, a_i+1 (vertices 0-3) and b_i, b_i+1 (4-7), outward
+  const n = (i + 1) % 4;
+  PRISM_FACES.push(i, n, 4 + i, n, 4 + n, 4 + i);
+}
+const BODY_VERTICES = 22 * 6 + 21 * 8, BODY_INDICES = 22 * 24 + 21 * 24;
 
 class CrowdView {
   constructor() { this.capacity = 0; this.order = []; this.dirty = false; this.bonesOf = []; this.colorOf = []; this.colored = 0; }
   ensure(n) {  // room for n avatars, grown by doubling
     if (n <= this.capacity) return;
-    if (this.joints) { scene.remove(this.joints, this.bones); this.joints.dispose(); this.bones.dispose(); }
     this.capacity = Math.max(16, 2 ** Math.ceil(Math.log2(n)));
+    this.colored = 0;
+    if (QUALITY === "low") {
+      if (this.mesh) { scene.remove(this.mesh); this.mesh.geometry.dispose(); }
+      const geo = new THREE.BufferGeometry();
+      const V = this.capacity * BODY_VERTICES;
+      for (const [name, size] of [["position", 3], ["normal", 3], ["color", 3]]) {
+        geo.setAttribute(name, new THREE.BufferAttribute(new Float32Array(V * size), size).setUsage(THREE.DynamicDrawUsage));
+      }
+      const index = new Uint32Array(this.capacity * BODY_INDICES);
+      for (let k = 0, o = 0; k < this.capacity; k++) {
+        const base = k * BODY_VERTICES;
+        for (let j = 0; j < 22; j++) for (const f of OCTA_FACES) index[o++] = base + 6 * j + f;
+        for (let n = 0; n < 21; n++) for (const f of PRISM_FACES) index[o++] = base + 22 * 6 + 8 * n + f;
+      }
+      geo.setIndex(new THREE.BufferAttribute(index, 1));
+      geo.setDrawRange(0, 0);
+      this.mesh = new THREE.Mesh(geo, BODY_MAT);
+      this.mesh.frustumCulled = false;  // the vertices move every frame
+      scene.add(this.mesh);
+      return;
+    }
+    if (this.joints) { scene.remove(this.joints, this.bones); this.joints.dispose(); this.bones.dispose(); }
     this.joints = new THREE.InstancedMesh(JOINT_GEO, BODY_MAT, this.capacity * 22);
     this.bones = new THREE.InstancedMesh(BONE_GEO, BODY_MAT, this.capacity * 21);
     for (const m of [this.joints, this.bones]) {
       m.castShadow = true;
-      m.frustumCulled = false;  // the instances move every frame; the bounds are recomputed only to pick
+      m.frustumCulled = false;  // the instances move every frame
       m.count = 0;
       scene.add(m);
     }
-    this.colored = 0;
   }
-  // write every body's instances (when a frame arrived); bodies: Map id -> {positions}
+  // write every body's figure (when a frame arrived); bodies: Map id -> {positions}
   draw(bodies) {
     if (!this.dirty || !PARENTS.length) return;
     this.dirty = false;
     this.bonesOf = PARENTS.map((p, j) => (p >= 0 ? j : -1)).filter((j) => j >= 0);
     const ids = [...bodies.keys()].sort((x, y) => x - y);
     this.ensure(ids.length);
-    this.order = ids;
+    this.order = [];
     let k = 0;
     for (const id of ids) {
       const pos = bodies.get(id).positions;
       if (!pos) continue;
-      if (k >= this.colored || this.colorOf[k] !== id) {  // colours follow the avatar's id
-        _c.setHex(COLORS[id % COLORS.length]);
-        for (let j = 0; j < 22; j++) this.joints.setColorAt(k * 22 + j, _c);
-        for (let j = 0; j < 21; j++) this.bones.setColorAt(k * 21 + j, _c);
-        this.colorsChanged = true;
-      }
-      for (let j = 0; j < 22; j++) {
-        const r = j === 15 ? 0.11 : RADIUS[j] * 1.05;
-        _m.makeScale(r, r, r).setPosition(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
-        this.joints.setMatrixAt(k * 22 + j, _m);
-      }
-      for (let n = 0; n < this.bonesOf.length; n++) {
-        const j = this.bonesOf[n], p = PARENTS[j];
-        _a.set(pos[3 * p], pos[3 * p + 1], pos[3 * p + 2]);
-        _b.set(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
-        _d.subVectors(_b, _a);
-        const len = _d.length();
-        const r = Math.min(RADIUS[j], RADIUS[p]) * 0.9;
-        _q.setFromUnitVectors(UP, len > 1e-6 ? _d.divideScalar(len) : UP);
-        _m.compose(_a.addScaledVector(_b.sub(_a), 0.5), _q, _s.set(r, Math.max(len, 1e-3), r));
-        this.bones.setMatrixAt(k * 21 + n, _m);
-      }
+      const recolor = k >= this.colored || this.colorOf[k] !== id;  // colours follow the avatar's id
+      if (recolor) _c.setHex(COLORS[id % COLORS.length]);
+      if (QUALITY === "low") this.writeBody(k, pos, recolor);
+      else this.placeBody(k, pos, recolor);
+      this.order.push(id);
       k++;
     }
-    this.colorOf = ids.slice(0, k);
+    this.colorOf = this.order.slice();
     this.colored = k;
-    this.joints.count = k * 22;
-    this.bones.count = k * 21;
-    for (const m of [this.joints, this.bones]) {
-      m.instanceMatrix.needsUpdate = true;
-      if (m.instanceColor && this.colorsChanged) m.instanceColor.needsUpdate = true;
-      m.boundingSphere = null;  // stale: recomputed when picking
+    if (QUALITY === "low") {
+      const geo = this.mesh.geometry;
+      for (const name of ["position", "normal"]) {
+        geo.attributes[name].clearUpdateRanges();
+        geo.attributes[name].addUpdateRange(0, k * BODY_VERTICES * 3);
+        geo.attributes[name].needsUpdate = true;
+      }
+      if (this.colorsChanged) geo.attributes.color.needsUpdate = true;
+      geo.setDrawRange(0, k * BODY_INDICES);
+    } else {
+      this.joints.count = k * 22;
+      this.bones.count = k * 21;
+      for (const m of [this.joints, this.bones]) {
+        m.instanceMatrix.needsUpdate = true;
+        if (m.instanceColor && this.colorsChanged) m.instanceColor.needsUpdate = true;
+      }
     }
     this.colorsChanged = false;
   }
-  // the avatar and joint under the ray, or null
+  // body k's vertices in the merged mesh (low quality)
+  writeBody(k, pos, recolor) {
+    const geo = this.mesh.geometry;
+    const P = geo.attributes.position.array, N = geo.attributes.normal.array, C = geo.attributes.color.array;
+    let v = k * BODY_VERTICES * 3;
+    if (recolor) {
+      for (let i = v; i < v + BODY_VERTICES * 3; i += 3) { C[i] = _c.r; C[i + 1] = _c.g; C[i + 2] = _c.b; }
+      this.colorsChanged = true;
+    }
+    for (let j = 0; j < 22; j++) {
+      const r = jointRadius(j), x = pos[3 * j], y = pos[3 * j + 1], z = pos[3 * j + 2];
+      for (const [a, b, c] of OCTA) {
+        P[v] = x + r * a; P[v + 1] = y + r * b; P[v + 2] = z + r * c;
+        N[v] = a; N[v + 1] = b; N[v + 2] = c;
+        v += 3;
+      }
+    }
+    for (let n = 0; n < this.bonesOf.length; n++) {
+      const j = this.bonesOf[n], p = PARENTS[j];
+      _a.set(pos[3 * p], pos[3 * p + 1], pos[3 * p + 2]);
+      _b.set(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+      _d.subVectors(_b, _a);
+      if (_d.lengthSq() < 1e-12) _d.set(0, 1, 0);
+      _d.normalize();
+      // two axes across the bone, e1 x e2 = d (the faces' winding faces outward)
+      _e1.set(Math.abs(_d.y) < 0.9 ? 0 : 1, Math.abs(_d.y) < 0.9 ? 1 : 0, 0).cross(_d).negate().normalize();
+      _e2.crossVectors(_d, _e1);
+      const r = boneRadius(j, p);
+      for (const end of [_a, _b]) {
+        for (let i = 0; i < 4; i++) {
+          const s = i < 2 ? 1 : -1, e = i % 2 === 0 ? _e1 : _e2;
+          const nx = s * e.x, ny = s * e.y, nz = s * e.z;
+          P[v] = end.x + r * nx; P[v + 1] = end.y + r * ny; P[v + 2] = end.z + r * nz;
+          N[v] = nx; N[v + 1] = ny; N[v + 2] = nz;
+          v += 3;
+        }
+      }
+    }
+  }
+  // body k's instances (high quality)
+  placeBody(k, pos, recolor) {
+    if (recolor) {
+      for (let j = 0; j < 22; j++) this.joints.setColorAt(k * 22 + j, _c);
+      for (let j = 0; j < 21; j++) this.bones.setColorAt(k * 21 + j, _c);
+      this.colorsChanged = true;
+    }
+    for (let j = 0; j < 22; j++) {
+      const r = jointRadius(j);
+      _m.makeScale(r, r, r).setPosition(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+      this.joints.setMatrixAt(k * 22 + j, _m);
+    }
+    for (let n = 0; n < this.bonesOf.length; n++) {
+      const j = this.bonesOf[n], p = PARENTS[j];
+      _a.set(pos[3 * p], pos[3 * p + 1], pos[3 * p + 2]);
+      _b.set(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+      _d.subVectors(_b, _a);
+      const len = _d.length();
+      const r = boneRadius(j, p);
+      _q.setFromUnitVectors(UP, len > 1e-6 ? _d.divideScalar(len) : UP);
+      _m.compose(_a.addScaledVector(_b.sub(_a), 0.5), _q, _s.set(r, Math.max(len, 1e-3), r));
+      this.bones.setMatrixAt(k * 21 + n, _m);
+    }
+  }
+  // the avatar and joint under the ray, or null: the nearest joint ball or bone it passes through
+  // (from the streamed positions: the same in either quality)
   pick(ray) {
-    if (!this.joints) return null;
-    const hits = ray.intersectObjects([this.joints, this.bones]);
-    if (!hits.length) return null;
-    const h = hits[0];
-    const per = h.object === this.joints ? 22 : 21;
-    const avatar = this.order[Math.floor(h.instanceId / per)];
-    const joint = h.object === this.joints ? h.instanceId % 22 : this.bonesOf[h.instanceId % 21];
-    return { avatar, joint, point: h.point };
+    let best = null;
+    const consider = (t, avatar, joint) => { if (t > 0 && (!best || t < best.t)) best = { t, avatar, joint }; };
+    for (const id of this.order) {
+      const b = bodies.get(id);
+      if (!b || !b.positions) continue;
+      const pos = b.positions;
+      for (let j = 0; j < 22; j++) {
+        _a.set(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+        const r = jointRadius(j);
+        if (ray.distanceSqToPoint(_a) <= r * r) consider(_d.subVectors(_a, ray.origin).dot(ray.direction), id, j);
+      }
+      for (const j of this.bonesOf) {
+        const p = PARENTS[j], r = boneRadius(j, p);
+        _a.set(pos[3 * p], pos[3 * p + 1], pos[3 * p + 2]);
+        _b.set(pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]);
+        if (ray.distanceSqToSegment(_a, _b, _onRay) <= r * r) consider(_onRay.sub(ray.origin).dot(ray.direction), id, j);
+      }
+    }
+    return best && { avatar: best.avatar, joint: best.joint, point: ray.at(best.t, new THREE.Vector3()) };
   }
 }
 // the skinned human (body/human.py): for the first HUMANS avatars, each fitted to its own body by
@@ -511,9 +636,8 @@ function drawEnvironment(env) {
   const about = new THREE.Matrix4().makeTranslation(px, 0, pz).multiply(turn).multiply(new THREE.Matrix4().makeTranslation(-px, 0, -pz));
   ground.matrixAutoUpdate = false;
   ground.matrix.copy(about.clone().multiply(new THREE.Matrix4().makeRotationX(-Math.PI / 2)));
-  grid.matrixAutoUpdate = false;
-  grid.matrix.copy(about.clone().multiply(new THREE.Matrix4().makeTranslation(0, 0.002, 0)));
-  ground.matrixWorldNeedsUpdate = grid.matrixWorldNeedsUpdate = true;
+  groundFrame = about;
+  ground.matrixWorldNeedsUpdate = true;
   $("tilt").value = String(Math.round(env.ground.tilt[0]));
   $("tilt-value").textContent = String(Math.round(env.ground.tilt[0]));
   while (obstacleMeshes.length < env.obstacles.length) {
@@ -696,7 +820,10 @@ function animate(t) {
     camera.position.add(delta);
     sun.position.set(target.x + 4, 8, target.z + 3);
     sun.target.position.copy(target);
-    grid.position.set(Math.round(orbit.target.x), grid.position.y, Math.round(orbit.target.z));
+    // (in whole metres, so its lines stay put on the floor; it had stayed around the origin once
+    // the world's environment was drawn, and was gone 45 m away)
+    grid.matrix.copy(groundFrame).multiply(_gridAt.makeTranslation(Math.round(orbit.target.x), 0.002, Math.round(orbit.target.z)));
+    grid.matrixWorldNeedsUpdate = true;
   }
   if (t - lastPad > 150 && navigator.getGamepads && [...navigator.getGamepads()].some(Boolean)) { lastPad = t; steer(); }
   orbit.update();
