@@ -32,7 +32,7 @@ SLICES = {
     "joints": slice(135, 201),
     "velocities": slice(201, 267),
 }
-_ROTATIONS = slice(SLICES["root_rot"].start, SLICES["local_rot"].stop)  # contiguous: the 22 rotations
+ROTATIONS = slice(SLICES["root_rot"].start, SLICES["local_rot"].stop)  # the 22 rotations' 6D channels, contiguous
 _LH, _RH = JOINT_INDEX["left_hip"], JOINT_INDEX["right_hip"]
 
 
@@ -53,7 +53,7 @@ class Unpacked:
     def rotations(self) -> torch.Tensor:
         """(..., 22, 3, 3): the root's global rotation and the 21 local ones, made in one call (their
         6D channels are contiguous): at one avatar each call's dispatch costs more than its work."""
-        return rot.sixd_to_matrix(self.state[..., _ROTATIONS].reshape(*self.state.shape[:-1], NUM_JOINTS, 6))
+        return rot.sixd_to_matrix(self.state[..., ROTATIONS].reshape(*self.state.shape[:-1], NUM_JOINTS, 6))
 
     @cached_property
     def root_rot(self) -> torch.Tensor:

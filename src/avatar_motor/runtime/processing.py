@@ -13,7 +13,7 @@ import torch
 
 from ..body import rotations as rot
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, JOINT_NAMES, PARENTS, forward_kinematics
-from ..body.motion_state import FPS, SLICES, facing_yaw, horizontal, joints_of, pack, unpack
+from ..body.motion_state import FPS, ROTATIONS, SLICES, facing_yaw, horizontal, joints_of, pack, unpack
 
 
 def _backward_velocities(x0: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
@@ -394,7 +394,8 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     The new motion, extrapolated back one frame to the time of x0 (x1 - (x2 - x1)), should be x0;
     the difference is an offset that decays as a critically damped spring (Holden's
     inertialization) over the segment, for the root position, the joint locations and every
-    rotation (as rotation vectors). Where match_velocity (B,) is true the joint velocities are
+    rotation (in its 6D channels, which the stages after turn into a rotation by Gram-Schmidt).
+    Where match_velocity (B,) is true the joint velocities are
     matched too (offset x0's velocity minus the new motion's first velocity), so the stream has no
     kink at the join. Where it is false (the avatar was just pushed: x0's velocity carries an impulse
     that the network has already turned into motion and must not be added again) only positions
@@ -417,25 +418,24 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     dJ = spring_decay(off_J, off_V, halflife, t).reshape(B, N, 22, 3)
     joints = u.joints + dJ
     root_pos = u.root_pos + dJ[:, :, 0]  # the root is the pelvis
-    R0 = u0.rotations  # (B, 22, 3, 3)
-    R = u.rotations  # (B, N, 22, 3, 3)
-    # rotation extrapolated back one frame: R1 (R2^T R1)
-    R_back = R[:, 0] @ (R[:, nxt].transpose(-1, -2) @ R[:, 0])
+    # rotations in their 6D channels (two columns of each matrix), blended linearly there: to first
+    # order the geodesic blend of rotation vectors this was until 2026-12-02, in some 140 fewer
+    # tensor operations; eval realism and control read the same, eval impulses' kicks succeeded
+    # more often (45 and 90 states: left 67 -> 78 % and 70 -> 82 %, right 80 -> 91 %). Joins on
+    # the shipped model: half within 2 degrees, 99.9 % within 37, the largest seen 131 (a preset's);
+    # only near half a turn would the blend pass through a degenerate frame
+    S0 = x0[:, ROTATIONS].reshape(B, 22, 6)
+    S = seg[..., ROTATIONS].reshape(B, N, 22, 6)
+    S_back = 2 * S[:, 0] - S[:, nxt]  # extrapolated back one frame
+    off_r = S0 - S_back
+    off_w = torch.zeros_like(off_r)
     if before is not None and match_velocity is not None and N > 1:
-        ub = unpack(before)
-        Rb = ub.rotations
-        # the offset, and the per frame turns (left increments): x0's from the frame before, the
-        # new motion's first (one conversion for the three: at batch 1 each call's dispatch counts)
-        off_r, w0, w_new = rot.matrix_to_axis_angle(torch.stack((R0 @ R_back.transpose(-1, -2), R0 @ Rb.transpose(-1, -2),
-                                                                  R[:, 0] @ R_back.transpose(-1, -2)))).unbind(0)
+        # the per frame turns: x0's from the frame before, the new motion's first
         use = (match_velocity & has_before).reshape(B, 1, 1) & _TURN_MATCHED.reshape(1, 22, 1)
-        off_w = torch.where(use, (w0 - w_new) * FPS, torch.zeros_like(off_r))
-    else:
-        off_r = rot.matrix_to_axis_angle(R0 @ R_back.transpose(-1, -2))  # (B, 22, 3)
-        off_w = torch.zeros_like(off_r)
-    d_r = spring_decay(off_r[:, None], off_w[:, None], halflife, t[..., None])
-    R = rot.axis_angle_to_matrix(d_r) @ R
-    return _pack_moving(x0, root_pos, R[:, :, 0], R[:, :, 1:], joints)
+        off_w = torch.where(use, ((S0 - before[:, ROTATIONS].reshape(B, 22, 6)) - (S[:, 0] - S_back)) * FPS, off_w)
+    S = S + spring_decay(off_r[:, None], off_w[:, None], halflife, t[..., None])
+    return torch.cat((root_pos, S.reshape(B, N, 132), joints.reshape(B, N, 66),
+                      _backward_velocities(x0, joints).reshape(B, N, 66)), -1)
 
 
 # a body outside these is not a person whatever the model did: the guard resets it
