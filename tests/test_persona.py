@@ -201,6 +201,20 @@ def test_a_plain_model_refuses_a_persona_by_name(tmp_path):
         crowd.set_persona(crowd.spawn(), "a weary old man")
 
 
+def test_eval_control_steers_characters_and_refuses_them_on_a_plain_model(tmp_path):
+    """eval control --persona: the rollouts' avatars take the descriptions in turn; the steered
+    rows differ from the same goals without a character; a plain model is refused by name."""
+    from avatar_motor.eval.control import control
+    from .conftest_models import tiny_motor
+    motor = _persona_motor(tmp_path)
+    plain_rows, _, _ = control(motor, None, n=2, seconds=1.2)
+    rows, _, body = control(motor, None, n=2, seconds=1.2, personas=["a weary old man", "an energetic teenager"])
+    assert len(rows) == len(plain_rows) == 9 and all(math.isfinite(r["vel_err"]) for r in rows[1:])
+    assert any(abs(a["vel_err"] - b["vel_err"]) > 1e-6 for a, b in zip(rows[1:], plain_rows[1:]))
+    with pytest.raises(ValueError, match="no persona condition"):
+        control(tiny_motor(tmp_path), None, n=2, seconds=1.2, personas=["a weary old man"])
+
+
 def test_trajectory_errors_and_foot_sliding_on_made_up_motion():
     from avatar_motor.body.motion_state import SLICES as S
     from avatar_motor.eval.persona import fsd, trajectory_errors

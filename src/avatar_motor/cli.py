@@ -525,7 +525,8 @@ def _eval_control(a) -> int:
     from .eval.control import control, format_control
     from .model.checkpoint import load_checkpoint
 
-    rows, what, body = control(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a))
+    rows, what, body = control(load_checkpoint(a.model), _optional_caches(a.data), a.n, a.seconds, a.seed, _runtime_config(a),
+                               a.persona)
     print(format_control(rows, what, a.n, a.seconds, body))
     return 0
 
@@ -1018,6 +1019,9 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--seed", type=int, default=0)
         e.add_argument("--data", nargs="*")
         e.add_argument("--png", help="impulses: contact sheets of 4 rollouts per preset, OUT_PRESET.png")
+        if name == "control":
+            e.add_argument("--persona", action="append", help="a persona model's character, e.g. 'a weary old man' "
+                           "(repeatable: the avatars take them in turn)")
         e.set_defaults(func=fn)
     for name, helptext in (("actions", "R-precision, ASR, ANCR of action adaptors (Table A3)"),
                            ("reach", "minimal pelvis distance to 8 targets (Table A4)")):

@@ -35,23 +35,34 @@ def initial_states(caches: list[MotionCache] | None, n: int, seed: int):
 
 
 def control(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int = 0,
-            cfg: RuntimeConfig | None = None) -> tuple[list[dict], str, dict]:
+            cfg: RuntimeConfig | None = None, personas: list[str] | None = None) -> tuple[list[dict], str, dict]:
     """Goals in the body frame of each initial state (forward/left/right/back x 1 and 4 m/s);
     errors measured after 1 s: mean pelvis-velocity error (m/s) and facing error (|z - r|), on
-    the exported body. Returns the rows, what the initial states are, and the one-body figures."""
+    the exported body. personas: descriptions a persona model's avatars take in turn (steering
+    characters, as WASD does in the studio). Returns the rows, what the initial states are, and
+    the one-body figures."""
     cfg = cfg or RuntimeConfig()
+    if personas and not motor.net.cfg.persona:
+        raise ValueError(f"{motor.name} has no persona condition: --persona needs a persona model "
+                         "(models/primal-bandai-persona)")
     check = BodyCheck()
     init, shapes, what = initial_states(caches, n, seed)
     from ..body.motion_state import canonical_transform
     R = canonical_transform(init.double()).R.float()  # body -> world yaw per initial state
     rows = []
-    base = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check)
+    def characters(crowd, seg):
+        if seg == 0 and personas:
+            for k, i in enumerate(sorted(crowd.avatars)):
+                crowd.set_persona(i, personas[k % len(personas)])
+
+    base = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, characters, check=check)
     rows.append({"goal": "none (unguided)", "vel_err": float("nan"), "dir_err": float("nan"), "ASR": M.asr(joints_of(base))})
     for name, (dx, dz) in DIRECTIONS.items():
         for speed in (1.0, 4.0):
             g_world = torch.stack([R[k] @ torch.tensor([dx * speed, 0.0, dz * speed]) for k in range(n)])
 
             def controls(crowd, seg, g_world=g_world):
+                characters(crowd, seg)
                 if seg == 0:
                     for k, i in enumerate(sorted(crowd.avatars)):
                         crowd.set_goal(i, (float(g_world[k, 0]), float(g_world[k, 2])))
