@@ -46,6 +46,8 @@ def _cross_map() -> torch.Tensor:
 
 
 _CROSS = _cross_map()
+
+
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula on the unnormalised axis K = [aa]x: R = I + sin(t)/t K + (1 - cos(t))/t^2 K^2,
     the two factors taken from their Taylor series near t = 0, where they are exact to the

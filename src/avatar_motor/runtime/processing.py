@@ -395,14 +395,14 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     the difference is an offset that decays as a critically damped spring (Holden's
     inertialization) over the segment, for the root position, the joint locations and every
     rotation (in its 6D channels, which the stages after turn into a rotation by Gram-Schmidt).
-    Where match_velocity (B,) is true the joint velocities are
-    matched too (offset x0's velocity minus the new motion's first velocity), so the stream has no
-    kink at the join. Where it is false (the avatar was just pushed: x0's velocity carries an impulse
-    that the network has already turned into motion and must not be added again) only positions
-    are blended. With the frame shown before x0 (before (B, 267), where has_before (B,)), the
-    velocities of the upper body's rotations are matched as well (each one's turn from it to x0
-    against the new motion's first turn; _TURN_MATCHED); other rotations are blended in position
-    only. Velocities are then recomputed as backward differences, so the result is consistent.
+    Where match_velocity (B,) is true the joint velocities are matched too (offset x0's velocity
+    minus the new motion's first velocity), so the stream has no kink at the join. Where it is
+    false (the avatar was just pushed: x0's velocity carries an impulse that the network has
+    already turned into motion and must not be added again) only positions are blended. With
+    the frame shown before x0 (before (B, 267), where has_before (B,)), the velocities of the
+    upper body's rotations are matched as well (each one's turn from it to x0 against the new
+    motion's first turn; _TURN_MATCHED); other rotations are blended in position only.
+    Velocities are then recomputed as backward differences, so the result is consistent.
     """
     B, N, _ = seg.shape
     dt = 1.0 / FPS
@@ -419,11 +419,9 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     joints = u.joints + dJ
     root_pos = u.root_pos + dJ[:, :, 0]  # the root is the pelvis
     # rotations in their 6D channels (two columns of each matrix), blended linearly there: to first
-    # order the geodesic blend of rotation vectors this was until 2026-12-02, in some 140 fewer
-    # tensor operations; eval realism and control read the same, eval impulses' kicks succeeded
-    # more often (45 and 90 states: left 67 -> 78 % and 70 -> 82 %, right 80 -> 91 %). Joins on
-    # the shipped model: half within 2 degrees, 99.9 % within 37, the largest seen 131 (a preset's);
-    # only near half a turn would the blend pass through a degenerate frame
+    # order the geodesic blend of rotation vectors, in some 140 fewer tensor operations (the EMDM
+    # card has what it changed). Only an offset near half a turn would pass through a degenerate
+    # frame; the shipped model's joins are within a few degrees, after a preset at most ~130
     S0 = x0[:, ROTATIONS].reshape(B, 22, 6)
     S = seg[..., ROTATIONS].reshape(B, N, 22, 6)
     S_back = 2 * S[:, 0] - S[:, nxt]  # extrapolated back one frame
