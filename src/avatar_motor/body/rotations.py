@@ -48,6 +48,11 @@ def _cross_map() -> torch.Tensor:
 _CROSS = _cross_map()
 
 
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """[v]x (..., 3, 3), the matrix of v x ., as one product (not nine picked entries)."""
+    return (v @ _CROSS.to(v.dtype)).reshape(*v.shape[:-1], 3, 3)
+
+
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula on the unnormalised axis K = [aa]x: R = I + sin(t)/t K + (1 - cos(t))/t^2 K^2,
     the two factors taken from their Taylor series near t = 0, where they are exact to the
@@ -58,7 +63,7 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     t2 = theta * theta
     a = torch.where(small, 1 - t2 / 6, torch.sin(th) / th)[..., None]
     b = torch.where(small, 0.5 - t2 / 24, (1 - torch.cos(th)) / (th * th))[..., None]
-    K = (aa @ _CROSS.to(aa.dtype)).reshape(*aa.shape[:-1], 3, 3)  # one product, not nine picked entries
+    K = skew(aa)
     return torch.eye(3, dtype=aa.dtype, device=aa.device) + a * K + b * (K @ K)
 
 
