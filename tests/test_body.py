@@ -104,6 +104,16 @@ def test_rotation_between_and_kabsch():
     assert torch.allclose(rot.kabsch(src, src @ Rt.T), Rt, atol=1e-9)
 
 
+def test_turn_onto_is_rotation_between_away_from_opposite_directions():
+    g = torch.Generator().manual_seed(2)
+    u = torch.randn(500, 3, generator=g, dtype=torch.float64)
+    v = u + 0.8 * torch.randn(500, 3, generator=g, dtype=torch.float64)
+    keep = (rot.normalize(u) * rot.normalize(v)).sum(-1) > -0.9
+    R = rot.turn_onto(u[keep], v[keep])
+    assert torch.allclose(R, rot.rotation_between(u[keep], v[keep]), atol=1e-9)
+    assert torch.allclose(R @ R.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand_as(R), atol=1e-9)
+
+
 def test_shape_zero_is_average_and_components_do_what_they_say():
     z = torch.zeros(SHAPE_DIM)
     assert torch.allclose(rest_offsets(z, torch.float64), rest_offsets(None, torch.float64))

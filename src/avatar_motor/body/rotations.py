@@ -236,6 +236,16 @@ def rotation_between(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_matrix(axis * angle)
 
 
+def turn_onto(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """rotation_between for directions that are never near opposite (small corrections, as the
+    legs' IK makes): R = I + [w]x + [w]x^2 / (1 + c), with w = u x v and c = u . v of the unit
+    directions, in a third of rotation_between's operations; near opposite it is not a rotation."""
+    u, v = normalize(u), normalize(v)
+    K = skew(torch.cross(u, v, dim=-1))
+    c = (u * v).sum(-1)[..., None, None]
+    return torch.eye(3, dtype=u.dtype, device=u.device) + K + (K @ K) / (1 + c).clamp_min(1e-6)
+
+
 def kabsch(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
     """Rotation R minimising sum_k w_k |R src_k - dst_k|^2 (src, dst: (..., K, 3), no centring)."""
     if weights is None:

@@ -50,6 +50,7 @@ def control(motor: Motor, caches, n: int = 45, seconds: float = 3.0, seed: int =
     from ..body.motion_state import canonical_transform
     R = canonical_transform(init.double()).R.float()  # body -> world yaw per initial state
     rows = []
+
     def characters(crowd, seg):
         if seg == 0 and personas:
             for k, i in enumerate(sorted(crowd.avatars)):

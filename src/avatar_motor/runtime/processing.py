@@ -56,17 +56,6 @@ _LEGS = [tuple(JOINT_INDEX[f"{side}_{j}"] for j in ("hip", "knee", "ankle", "foo
 assert not set(PARENTS) & {leg[3] for leg in _LEGS}  # solve_body places the feet as leaves
 
 
-def _turn_onto(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """The smallest rotation (..., 3, 3) taking direction u onto direction v, for directions that
-    are never near opposite (the legs' small corrections): R = I + [w]x + [w]x^2 / (1 + c), with
-    w = u x v and c = u . v of the unit directions; a third of rot.rotation_between's operations,
-    which also handles opposite directions."""
-    u, v = rot.normalize(u), rot.normalize(v)
-    K = rot.skew(torch.cross(u, v, dim=-1))
-    c = (u * v).sum(-1)[..., None, None]
-    return torch.eye(3, dtype=u.dtype) + K + (K @ K) / (1 + c).clamp_min(1e-6)
-
-
 def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch.Tensor,
                 bend_axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Rotations that put the end c of the chain a-b-c (hip, knee, ankle positions (..., 3)) on
@@ -86,7 +75,7 @@ def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch
     n = rot.normalize(torch.cross(b - a, c - b, dim=-1) + 1e-3 * bend_axis)
     R_b = rot.axis_angle_to_matrix(n * (torch.acos(cos_now) - torch.acos(cos_want))[..., None])
     c_new = b + (R_b @ (c - b)[..., None])[..., 0]
-    R_a = _turn_onto(c_new - a, target - a)
+    R_a = rot.turn_onto(c_new - a, target - a)
     return R_a, R_b
 
 
@@ -159,7 +148,7 @@ def solve_body(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
         p_knee = P[:, :, hip] + (G_hip @ off[:, :, knee, :, None])[..., 0]
         p_ankle = p_knee + (G_knee @ off[:, :, ankle, :, None])[..., 0]
         bone = (G_ankle @ off[:, :, foot, :, None])[..., 0]
-        G_ankle = _turn_onto(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G_ankle
+        G_ankle = rot.turn_onto(bone, _above_ground(goal[..., 0, :] - p_ankle, p_ankle, bone)) @ G_ankle
         # the foot joints keep their local rotations (index_copy rather than an indexed assignment,
         # whose trace would keep the batch size: runtime/stage_graph.py)
         local = local.index_copy(2, torch.tensor([j - 1 for j in hip + knee + ankle]), torch.cat(

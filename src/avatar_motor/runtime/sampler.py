@@ -174,7 +174,7 @@ class Sampler:
             self._steer(x0_cond, batch.v_goal, batch.facing_goal, Rt)
         cond = motor.norm.encode(x0_cond.float())
         # guidance acts between steps: a one-step chain has none (its goals steer through _steer)
-        steps = cfg.steps if self.kind == "ddpm" else ADAPTOR_STEPS if ddpm else cfg.steps
+        steps = ADAPTOR_STEPS if ddpm and self.kind != "ddpm" else cfg.steps
         guide = self._guidance(batch.v_goal, batch.facing_goal, Rt.float(), x0c.float()) if steps > 1 else None
         N = motor.net.cfg.frames
         denoise = self._denoiser(batch, tf, cond, adaptor, x0c)
