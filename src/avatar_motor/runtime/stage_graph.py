@@ -2,9 +2,10 @@
 `RuntimeConfig.trace_stages` runs: for one avatar the stages are some 1,400 small tensor
 operations, each of which costs more to dispatch from Python than to compute. The graph runs the
 same kernels on the same values, so its output is bit for bit the Python stages' (the tests
-check it), in about 0.6x their time at one avatar. The traced graph is frozen and run by
-TorchScript's static runtime (`_Static`), which dispatches each of its ~1,000 operations with less
-overhead than the graph interpreter: at one avatar 0.94 against 1.13 ms, the same values bit for bit.
+check it), in about 0.6x their time at one avatar. Small batches run the graph frozen, in
+TorchScript's static runtime (`_Graph`), which dispatches each of its ~1,000 operations with less
+overhead than the graph interpreter: 0.17-0.19 ms less at 1-16 avatars (1 avatar: 0.89 against
+1.04 ms), the same values bit for bit.
 
 A graph is traced for one signature: the runtime config (the stages and their settings), the
 dtype, the frames of the segment and of the past, and whether some body has a facing goal
@@ -48,41 +49,48 @@ def signature(cfg, ctx: StageContext, seg: torch.Tensor) -> tuple:
     return (repr(cfg), seg.dtype, seg.shape[1], None if ctx.past is None else ctx.past.shape[1], ctx.any_facing)
 
 
-_GRAPHS: dict[tuple, object] = {}
-_LOCK = threading.Lock()
-
-
 log = logging.getLogger("avatar_motor.runtime")
 
 
-class _Static:
-    """A frozen traced graph run by TorchScript's static runtime (torch._C's StaticModule, what
-    PyTorch offers for small-batch CPU inference): the same kernels, with their outputs' memory
-    planned once and less interpreter work per operation. One runtime per graph holds that
-    memory, so calls from the server's threads take turns."""
+# the largest batch the static runtime runs: it holds Python's lock for the whole call (the
+# interpreter lets go of it), and the server's clock and sockets wait meanwhile: with 128 avatars
+# a 1-ms sleep beside it took 39 ms instead of 1.1; 4 avatars hold it for about 1.6 ms
+STATIC_ROWS = 4
+
+
+class _Graph:
+    """A traced graph, run by TorchScript's static runtime (torch._C's StaticModule, what PyTorch
+    offers for small-batch CPU inference: the same kernels, their outputs' memory planned once)
+    for batches of up to STATIC_ROWS rows, by its interpreter for larger ones. The static runtime
+    keeps that memory per graph, so its calls from the server's threads take turns."""
 
     def __init__(self, traced: torch.jit.ScriptModule):
-        self.module = torch._C._jit_to_static_module(torch.jit.freeze(traced.eval())._c)
+        self.traced = traced
+        try:
+            self.static = torch._C._jit_to_static_module(torch.jit.freeze(traced.eval())._c)
+        except RuntimeError as e:  # an operation it has no form for: the interpreter runs every batch
+            log.warning("post-processing runs in TorchScript's interpreter, not its static runtime: %s", e)
+            self.static = None
         self.lock = threading.Lock()
 
-    def __call__(self, *tensors: torch.Tensor) -> torch.Tensor:
+    def __call__(self, seg: torch.Tensor, *rest: torch.Tensor) -> torch.Tensor:
+        if self.static is None or len(seg) > STATIC_ROWS:
+            return self.traced(seg, *rest)
         with self.lock:
-            return self.module(*tensors)
+            return self.static(seg, *rest)
 
 
-def trace_stages(cfg, ctx: StageContext, seg: torch.Tensor):
-    """The graph of run_stages for the signature of (cfg, ctx, seg), traced on them, as the static
-    runtime runs it (as TorchScript's interpreter does where that runtime refuses the graph)."""
+_GRAPHS: dict[tuple, _Graph] = {}
+_LOCK = threading.Lock()
+
+
+def trace_stages(cfg, ctx: StageContext, seg: torch.Tensor) -> _Graph:
+    """The graph of run_stages for the signature of (cfg, ctx, seg), traced on them."""
     with torch.no_grad(), warnings.catch_warnings():
         # the tracer warns of every constant it records (index lists, the config's numbers);
         # tests/test_runtime.py checks the graph against the Python stages on other batches
         warnings.simplefilter("ignore")
-        traced = torch.jit.trace(_Stages(cfg, ctx.any_facing), _tensors(ctx, seg), check_trace=False)
-        try:
-            return _Static(traced)
-        except RuntimeError as e:  # an operation it has no form for: still a graph, interpreted
-            log.warning("post-processing runs in TorchScript's interpreter, not its static runtime: %s", e)
-            return traced
+        return _Graph(torch.jit.trace(_Stages(cfg, ctx.any_facing), _tensors(ctx, seg), check_trace=False))
 
 
 def run_traced_stages(cfg, ctx: StageContext, seg: torch.Tensor) -> torch.Tensor:
