@@ -93,13 +93,15 @@ def test_bad_files_are_named(mutate, message):
 
 def test_the_wheel_imports_its_humanoid_clips(tmp_path):
     """pybullet's wheel as a user passes it: humanoid3d clips imported and labelled, another
-    character's clip skipped with its reason, a text file that is no motion passed over."""
+    character's clip skipped with its reason, a text file and a JSON object without frames (an
+    agent's settings; the Bandai data's labels beside each BVH) that are no motion passed over."""
     wheel = tmp_path / "pybullet-0.0.0-cp311-none-any.whl"
     with zipfile.ZipFile(wheel, "w") as z:
         z.writestr("pybullet_data/data/motions/humanoid3d_kick.txt", deepmimic_clip()[0])
         z.writestr("pybullet_data/data/motions/humanoid3d_roll.txt", deepmimic_clip(30, lying=True)[0])
         z.writestr("pybullet_data/data/motions/laikago_walk.txt", json.dumps({"Frames": [[0.1] * 20] * 3}))
         z.writestr("pybullet_data/README.txt", "not a motion")
+        z.writestr("pybullet_data/data/agents/ct_agent_humanoid_ppo.txt", json.dumps({"AgentType": "PPO"}))
         z.writestr("pybullet/__init__.py", "")
     path, summary = import_motion(wheel, progress=False, workers=1)
     assert path.name == "deepmimic.npz"
@@ -109,6 +111,15 @@ def test_the_wheel_imports_its_humanoid_clips(tmp_path):
     assert "another DeepMimic character" in summary["skipped"][0]["reason"]
     root, _ = c.clip(0)
     assert root.shape == (45, 3) and np.isfinite(root).all()
+
+
+def test_a_json_file_given_alone_gets_the_parsers_error(tmp_path):
+    """Passed over in a folder, a JSON object without frames given alone is parsed, and the user
+    reads why it is no DeepMimic clip."""
+    f = tmp_path / "labels.json"
+    f.write_text(json.dumps({"content": 6, "style": 11}))
+    with pytest.raises(ValueError, match="no clip could be imported.*has no 'Frames' list"):
+        import_motion(f, cache_dir=tmp_path / "cache", progress=False, workers=1)
 
 
 PYBULLET = "pybullet==3.2.7"
@@ -127,7 +138,7 @@ def test_pybullet_wheel_clips_do_what_their_names_say(tmp_path):
         pytest.skip(f"pip could not download {PYBULLET}: {got.stderr[-300:]}")
     path, summary = import_motion(wheels[0], progress=False, workers=1)
     c = MotionCache.load(path)
-    assert len(c.clips) == 20 and [s["key"].split("/")[-1] for s in summary["skipped"]] == ["laikago_walk.txt", "ct_agent_humanoid_ppo.txt"]
+    assert len(c.clips) == 20 and [s["key"].split("/")[-1] for s in summary["skipped"]] == ["laikago_walk.txt"]
 
     def states(name):
         i = c.find(f"humanoid3d_{name}.txt")

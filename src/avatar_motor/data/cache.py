@@ -129,7 +129,10 @@ MOTION_SUFFIXES = (".bvh", ".txt", ".json")
 
 
 def _is_motion(key: str, data: bytes) -> bool:
-    return key.lower().endswith(".bvh") or looks_like_deepmimic(data)
+    """A BVH, or a JSON object with a Frames list (DeepMimic's): a folder's other JSON files, such
+    as the Bandai data's per-clip labels beside each BVH, are not motion and are passed over
+    (a file given alone is parsed whatever it holds, so its error is the parser's)."""
+    return key.lower().endswith(".bvh") or (looks_like_deepmimic(data) and b'"Frames"' in data)
 
 
 def _iter_sources(src: Path):
@@ -263,6 +266,7 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
     t0 = time.time()
     kept, new_items, skipped, seen = [], [], [], set()
     workers = workers or min(2, os.cpu_count() or 1)
+    alone = src.is_file() and src.suffix.lower() in MOTION_SUFFIXES  # one motion file, not an archive
 
     def jobs():
         for key, stamp, load in _iter_sources(src):
@@ -275,7 +279,7 @@ def import_motion(src: str | Path, name: str | None = None, cache_dir: str | Pat
             except BVHError as e:
                 skipped.append({"key": key, "reason": str(e)})
                 continue
-            if not _is_motion(key, data):
+            if not (alone or _is_motion(key, data)):
                 continue
             yield key, stamp, data
 
