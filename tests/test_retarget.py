@@ -238,6 +238,40 @@ def test_body_shape_is_estimated_from_the_file_skeleton(quirky_files):
     assert r.info["shape"] != [0.0] * 6 and all(abs(v) <= 2.5 for v in r.info["shape"])
 
 
+def _chains(leg_trunk_arm_widths) -> torch.Tensor:
+    """Joint positions (22, 3) whose chains have the given lengths (estimate_shape's order:
+    leg + trunk, leg, trunk, arm, shoulder width, hip width), laid out straight."""
+    from avatar_motor.body.skeleton import JOINT_INDEX
+    _, L, T, A, SW, HW = leg_trunk_arm_widths
+    P = torch.zeros(22, 3, dtype=torch.float64)
+    for k, name in enumerate(("spine1", "spine2", "spine3", "neck", "head")):
+        P[JOINT_INDEX[name]] = torch.tensor([0.0, T * (k + 1) / 5, 0.0])
+    for side, x in (("left", 1.0), ("right", -1.0)):
+        P[JOINT_INDEX[f"{side}_hip"]] = torch.tensor([x * HW / 2, 0.0, 0.0])
+        P[JOINT_INDEX[f"{side}_knee"]] = torch.tensor([x * HW / 2, -L / 2, 0.0])
+        P[JOINT_INDEX[f"{side}_ankle"]] = torch.tensor([x * HW / 2, -L, 0.0])
+        P[JOINT_INDEX[f"{side}_shoulder"]] = torch.tensor([x * SW / 2, 0.8 * T, 0.0])
+        P[JOINT_INDEX[f"{side}_elbow"]] = torch.tensor([x * (SW / 2 + A / 2), 0.8 * T, 0.0])
+        P[JOINT_INDEX[f"{side}_wrist"]] = torch.tensor([x * (SW / 2 + A), 0.8 * T, 0.0])
+    return P
+
+
+def test_a_rig_shared_by_every_file_of_its_naming_is_the_average_body():
+    """The Bandai data has one skeleton for every actor (RIG_LENGTHS): read against the average
+    body's own joints it was a body at the +-2.5 bounds; on that rig a file is the average body,
+    and a rig 10 % bigger is 10 % bigger with the same proportions. Other namings are measured
+    against the average body's joints as before."""
+    from avatar_motor.body.skeleton import JOINT_INDEX, STEP
+    from avatar_motor.data.retarget import RIG_LENGTHS, Mapping, estimate_shape
+    joints = {name: (k,) for name, k in JOINT_INDEX.items()}
+    rig = RIG_LENGTHS["bandai"]
+    assert estimate_shape(_chains(rig), Mapping("bandai", joints)).abs().max() < 1e-4
+    bigger = estimate_shape(_chains([1.1 * v for v in rig]), Mapping("bandai", joints))
+    assert float(bigger[0]) == pytest.approx(0.1 / STEP["stature"], abs=1e-3) and bigger[1:].abs().max() < 1e-4
+    # the same skeleton under another naming is measured against our joints: far from average
+    assert estimate_shape(_chains(rig), Mapping("mixamo", joints)).abs().max() > 2.0
+
+
 def test_import_names_the_skeleton_and_the_joints_it_ignored(quirky_files, tmp_path, capsys, monkeypatch):
     from avatar_motor.cli import main
     monkeypatch.setenv("AVATAR_MOTOR_CACHE", str(tmp_path / "cache"))

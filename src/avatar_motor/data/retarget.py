@@ -206,11 +206,24 @@ def _leaf_vector(b: BVH, P_w: torch.Tensor, G_w: torch.Tensor, A: np.ndarray, sc
     return None if e is None else local(e)
 
 
+# The average body as a rig whose files all share one skeleton places its joints: that skeleton's
+# lengths as estimate_shape measures them (m: leg + trunk, leg, trunk, arm, shoulder width, hip
+# width). Every file of both Bandai datasets has the same skeleton, whatever the actor, so it
+# tells nothing of the actor's build; measured against the average body's own joints it read as
+# stature -1.64, legs +2.14 and trunk, shoulders and hips at the +-2.5 bound (its head joint
+# sits at the skull's base, its upper arms 20 cm apart where ours are 39), a body nobody has.
+# A file on such a rig is the average body; one whose bones differ from it, that much bigger
+# or otherwise proportioned. (Shoulder width: the median over the files' frames, which varies
+# by 3 mm with the pose of the collars.)
+RIG_LENGTHS: dict[str, tuple[float, ...]] = {"bandai": (1.27630, 0.80067, 0.47563, 0.46620, 0.2044, 0.12939)}
+
+
 def estimate_shape(P: torch.Tensor, m: "Mapping") -> torch.Tensor:
     """Body-shape parameters (SHAPE_DIM,) of a source skeleton from its joint positions in metres,
     (F, J, 3) over the frames of its motion or (J, 3) for one pose: the overall size from leg plus
     trunk length (stature), then legs, trunk, arms, shoulder and hip width as proportions of it; each clamped to +-2.5 like the
-    shapes the model trained with. Each length is a sum over the canonical bones of the distance
+    shapes the model trained with. Lengths are compared with the average body's own, or, for a
+    rig that every file of its naming shares (RIG_LENGTHS), with that rig's. Each length is a sum over the canonical bones of the distance
     between their mapped source joints (median over frames): unlike a straight line across
     several bones it does not depend on the pose, and joints the source inserts along one of our
     bones (UE's spine_02) do not shorten it as they would in the file's rest pose."""
@@ -226,7 +239,10 @@ def estimate_shape(P: torch.Tensor, m: "Mapping") -> torch.Tensor:
         return torch.stack((leg + trunk, leg, trunk, arm, chain("left_shoulder", "right_shoulder"), chain("left_hip", "right_hip")))
 
     src = lengths(P.double(), j)
-    can = lengths(rest_positions(rest_offsets(None, torch.float64)), JOINT_INDEX)
+    if m.name in RIG_LENGTHS:
+        can = torch.tensor(RIG_LENGTHS[m.name], dtype=torch.float64)
+    else:
+        can = lengths(rest_positions(rest_offsets(None, torch.float64)), JOINT_INDEX)
     size = src[0] / can[0]
     shape = torch.zeros(SHAPE_DIM, dtype=torch.float64)
     # stature: rest_offsets scales every bone by 1 + 0.10 * stature / (bone part of the stature)
