@@ -290,6 +290,26 @@ def test_text_guidance_strengthens_the_text_and_leaves_the_rest(tmp_path):
     assert float((one[1] - two[1]).abs().max()) > 0.01
 
 
+def test_characterization_continues_the_clip_from_feet_matched_states(tmp_path):
+    """swap_partners: each clip window's partners are the other motion's windows whose initial
+    ankles and feet are nearest (the rest of the state does not count); prior_windows gives a
+    without_text share of its avatars no description (a zero text, marked absent)."""
+    from avatar_motor.body.motion_state import SLICES
+    from avatar_motor.body.skeleton import ANKLES_AND_FEET
+    from avatar_motor.train.characterize import prior_windows, swap_partners
+    src = _persona_motor(tmp_path)
+    g = torch.Generator().manual_seed(0)
+    starts = torch.randn(6, 3, 267, generator=g)
+    clip = starts[[4, 1]].clone()
+    clip[:, :, SLICES["root_pos"]] += 5.0  # far elsewhere, but the same feet
+    feet = [sl.start + 3 * j + k for sl in (SLICES["joints"], SLICES["velocities"]) for j in ANKLES_AND_FEET for k in range(3)]
+    clip[1, 0, feet] = starts[2, 0, feet]  # window 1's feet (where and how fast) are now those of start 2
+    assert swap_partners(clip, starts, src.norm, 1)[:, 0].tolist() == [4, 2]
+    assert swap_partners(clip, starts, src.norm, 3).shape == (2, 3)
+    W, shapes, text, has_text = prior_windows(src, 4, 1.0, src.net.cfg.frames, 0, without_text=1.0)
+    assert not bool(has_text.any()) and bool((text == 0).all()) and len(W) == len(shapes) == len(has_text)
+
+
 def test_adapt_persona_characterizes_a_model_from_a_clip(tmp_path):
     from avatar_motor.cli import main
     from avatar_motor.model.checkpoint import load_checkpoint

@@ -4,9 +4,15 @@ avatar like the clip's character under any stick input.
 
 - The clip windows carry the identifier as their text, the body shape estimated from the file's
   own skeleton, and their own trajectory (dropped at `trajectory_dropout`, as in training).
-- Prior preservation (Eq. 11's second term): as many windows again are the model's own motion
-  under random conditions (training descriptions of the Bandai styles, random bodies, random
-  goals), generated before fine-tuning, so the model keeps what it knew without any dataset.
+- Prior preservation (Eq. 11's second term): three in four windows of a batch (`clip_share`) are
+  the model's own motion under random conditions (training descriptions of the Bandai styles,
+  or none for a quarter of the avatars; random bodies, random goals), generated before
+  fine-tuning, so the model keeps what it knew without any dataset.
+- Initial states from elsewhere (the persona model's own `persona_swap`, stage 2 of its recipe):
+  a `swap` share of the clip windows continue from the initial state of the model's own motion
+  on the clip's body under other descriptions, one whose ankles and feet are nearest the
+  window's. Without it the clip's own first frame already tells its style, the identifier is
+  learnt as redundant, and an avatar given the name from another state moved as before.
 - The identifier is a fixed random unit vector in the text space (seeded by the name): WordLlama
   pools token embeddings, so a rare-token string (MotionPersona's choice for CLIP) would land near
   ordinary words; a random direction is far from every description the model was trained on.
@@ -38,14 +44,20 @@ class CharacterizeConfig:
     clips: list[str] = field(default_factory=list)  # BVH files of the character (about 10 s in all)
     name: str = ""  # the identifier: letters, digits, _ and -
     out: str = ""  # default runs/personas/NAME
-    steps: int = 300
-    batch: int = 32  # half clip windows, half prior windows
+    steps: int = 600
+    batch: int = 64
+    clip_share: float = 0.25  # of the batch: the clip's windows; the rest prior-preservation windows
     lr: float = 5e-5
     trajectory_dropout: float = 0.25
     prior_avatars: int = 32
     prior_seconds: float = 6.0
     fk_weight: float = 20.0
     fkv_weight: float = 0.2
+    # a share of the prior avatars move without a description, so that what the model does for an
+    # avatar without a persona is preserved too (all with one, it drifted toward the clip's style)
+    prior_without_text: float = 0.25
+    swap: float = 1.0  # share of the clip windows continued from a feet-matched state of other motion
+    swap_neighbours: int = 16  # ... a random one of this many nearest
     seed: int = 0
     threads: int = 0  # 0 = torch default
 
@@ -81,20 +93,24 @@ def clip_windows(paths: list[str], frames: int) -> tuple[torch.Tensor, torch.Ten
     return torch.cat(wins), shape.float()
 
 
-def prior_windows(motor, avatars: int, seconds: float, frames: int, seed: int):
+def prior_windows(motor, avatars: int, seconds: float, frames: int, seed: int, shape: torch.Tensor | None = None,
+                  without_text: float = 0.0):
     """The model's own motion under random conditions: windows (W, 1 + frames, 267), their shapes,
-    texts and whether each had a text."""
+    texts and whether each had one (a `without_text` share of the avatars is given none). shape
+    (SHAPE_DIM,): every avatar on that body instead of random ones."""
     from ..data.personas import DESCRIPTIONS, descriptions
     from ..model.text import embed_texts
     from ..runtime.crowd import Crowd, RuntimeConfig
     g = torch.Generator().manual_seed(seed)
     texts = [d for lab in sorted(DESCRIPTIONS) for d in descriptions(lab)]
     pick = torch.randint(len(texts), (avatars,), generator=g).tolist()
-    shapes = random_shapes(avatars, g)
+    has_text = torch.rand(avatars, generator=g) >= without_text
+    shapes = random_shapes(avatars, g) if shape is None else shape.float().expand(avatars, SHAPE_DIM).clone()
     crowd = Crowd(motor, RuntimeConfig(), seed)
     ids = [crowd.spawn(shape=shapes[k], position=(3.0 * k, 0.0)) for k in range(avatars)]
     for k, i in enumerate(ids):
-        crowd.set_persona(i, texts[pick[k]])
+        if has_text[k]:
+            crowd.set_persona(i, texts[pick[k]])
     made = {i: [crowd.state(i)[None]] for i in ids}
     seg = 0
     while sum(len(s) for s in made[ids[0]]) < seconds * 30:
@@ -113,8 +129,17 @@ def prior_windows(motor, avatars: int, seconds: float, frames: int, seed: int):
     idx = torch.arange(0, T - frames - 1, 5)[:, None] + torch.arange(frames + 1)
     W = canonicalize(X[:, idx].flatten(0, 1))[0].float()
     n = len(idx)
-    emb = embed_texts(texts)[torch.tensor(pick)]
-    return W, shapes.repeat_interleave(n, 0), emb.repeat_interleave(n, 0)
+    emb = embed_texts(texts)[torch.tensor(pick)] * has_text[:, None]
+    return W, shapes.repeat_interleave(n, 0), emb.repeat_interleave(n, 0), has_text.repeat_interleave(n, 0)
+
+
+def swap_partners(clip: torch.Tensor, starts: torch.Tensor, norm, k: int) -> torch.Tensor:
+    """For each clip window (W, 1 + N, 267), the indices (W, k) of the k windows of `starts` whose
+    initial states' ankles and feet (positions and velocities, normalised) are nearest."""
+    from .adapt import _match_features
+    f = _match_features("feet")
+    d = torch.cdist(norm.encode(clip[:, 0])[:, f], norm.encode(starts[:, 0])[:, f])
+    return d.topk(min(k, len(starts)), largest=False).indices
 
 
 def characterize(cfg: CharacterizeConfig, progress=print) -> Path:
@@ -133,27 +158,44 @@ def characterize(cfg: CharacterizeConfig, progress=print) -> Path:
     clip, shape = clip_windows(cfg.clips, N)
     progress(f"{len(cfg.clips)} clip(s): {len(clip)} windows ({(len(clip) + N) / 30:.1f} s) on a body of shape "
              f"{[round(v, 2) for v in shape.tolist()]}")
-    prior, p_shapes, p_text = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed)
+    prior, p_shapes, p_text, p_has_text = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed,
+                                                        without_text=cfg.prior_without_text)
     progress(f"prior preservation: {len(prior)} windows of the model's own motion ({time.time() - t0:.0f} s)")
+    if not 0.0 <= cfg.swap <= 1.0:
+        raise ValueError(f"swap is a share of the clip windows: give a value in [0, 1], not {cfg.swap}")
+    if cfg.swap > 0:
+        starts, _, _, _ = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed + 1, shape)
+        partners = swap_partners(clip, starts, motor.norm, cfg.swap_neighbours)
+        progress(f"other initial states: {len(starts)} windows on the clip's body ({time.time() - t0:.0f} s)")
     ident = identifier(cfg.name)
     net, norm, diffusion = motor.net, motor.norm, motor.diffusion
     net.train()
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr)
     g = torch.Generator().manual_seed(cfg.seed)
-    half = cfg.batch // 2
+    if not 0.0 < cfg.clip_share < 1.0:
+        raise ValueError(f"clip_share is a share of the batch: give a value between 0 and 1, not {cfg.clip_share}")
+    n_clip = max(1, min(cfg.batch - 1, round(cfg.batch * cfg.clip_share)))  # the clip's windows per batch
     for step in range(cfg.steps):
-        ci = torch.randint(len(clip), (half,), generator=g)
-        pi = torch.randint(len(prior), (cfg.batch - half,), generator=g)
+        ci = torch.randint(len(clip), (n_clip,), generator=g)
+        pi = torch.randint(len(prior), (cfg.batch - n_clip,), generator=g)
         x = torch.cat((clip[ci], prior[pi]))
-        shapes = torch.cat((shape.expand(half, SHAPE_DIM), p_shapes[pi]))
-        text = torch.cat((ident.expand(half, TEXT_DIM), p_text[pi]))
+        shapes = torch.cat((shape.expand(n_clip, SHAPE_DIM), p_shapes[pi]))
+        text = torch.cat((ident.expand(n_clip, TEXT_DIM), p_text[pi]))
         present = torch.ones(cfg.batch, 3, dtype=torch.bool)
+        present[n_clip:, 0] = p_has_text[pi]
         present[:, 2] = torch.rand(cfg.batch, generator=g) >= cfg.trajectory_dropout
         cond = PersonaCond(text, shapes, trajectory_of(x[:, 1:]), present)
         xn = norm.encode(x)
+        x_init = x[:, 0]  # the state the network continues from: the window's own, or (swap) another's
+        if cfg.swap > 0:
+            rows = (torch.rand(n_clip, generator=g) < cfg.swap).nonzero()[:, 0]
+            pick = partners[ci[rows], torch.randint(partners.shape[1], (len(rows),), generator=g)]
+            x_init = x_init.clone()
+            x_init[rows] = starts[pick, 0]
         t = torch.randint(diffusion.T, (cfg.batch,), generator=g)
         x_t = diffusion.q_sample(xn[:, 1:], t, torch.randn(xn[:, 1:].shape, generator=g))
-        losses = motion_loss(net(t, x_t, xn[:, 0], None, cond), xn[:, 1:], x[:, 0], shapes, norm, cfg.fk_weight, cfg.fkv_weight)
+        losses = motion_loss(net(t, x_t, norm.encode(x_init), None, cond), xn[:, 1:], x[:, 0], shapes, norm,
+                             cfg.fk_weight, cfg.fkv_weight)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         opt.step()
