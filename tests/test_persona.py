@@ -335,6 +335,7 @@ def test_adapt_persona_characterizes_a_model_from_a_clip(tmp_path):
     # bad input: a name that is not an identifier, a missing file, a plain model
     assert main(args[:3] + ["--name", "grand pa"] + args[5:]) == 2
     assert main(["adapt", "persona", str(tmp_path / "none.bvh"), "--name", "x", "--model", str(src.path)]) == 2
+    assert main(args + ["--set", "swap=1.5"]) == 2 and main(args + ["--set", "clip_share=1"]) == 2
     from .conftest_models import tiny_motor
     plain = tiny_motor(tmp_path)
     assert main(["adapt", "persona", clip, "--name", "x", "--model", str(plain.path)]) == 2

@@ -147,6 +147,11 @@ def characterize(cfg: CharacterizeConfig, progress=print) -> Path:
         raise ValueError(f"--name {cfg.name!r}: use 1-40 letters, digits, _ or - (the identifier avatars are given)")
     if not cfg.clips:
         raise ValueError("give the character's clip(s): avatar-motor adapt persona CLIP.bvh [...] --name NAME")
+    for share in ("swap", "prior_without_text"):
+        if not 0.0 <= getattr(cfg, share) <= 1.0:
+            raise ValueError(f"{share} is a share: give a value in [0, 1], not {getattr(cfg, share)}")
+    if not 0.0 < cfg.clip_share < 1.0:
+        raise ValueError(f"clip_share is a share of the batch: give a value between 0 and 1, not {cfg.clip_share}")
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     motor = load_checkpoint(cfg.model)
@@ -161,8 +166,6 @@ def characterize(cfg: CharacterizeConfig, progress=print) -> Path:
     prior, p_shapes, p_text, p_has_text = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed,
                                                         without_text=cfg.prior_without_text)
     progress(f"prior preservation: {len(prior)} windows of the model's own motion ({time.time() - t0:.0f} s)")
-    if not 0.0 <= cfg.swap <= 1.0:
-        raise ValueError(f"swap is a share of the clip windows: give a value in [0, 1], not {cfg.swap}")
     if cfg.swap > 0:
         starts, _, _, _ = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed + 1, shape)
         partners = swap_partners(clip, starts, motor.norm, cfg.swap_neighbours)
@@ -172,8 +175,6 @@ def characterize(cfg: CharacterizeConfig, progress=print) -> Path:
     net.train()
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr)
     g = torch.Generator().manual_seed(cfg.seed)
-    if not 0.0 < cfg.clip_share < 1.0:
-        raise ValueError(f"clip_share is a share of the batch: give a value between 0 and 1, not {cfg.clip_share}")
     n_clip = max(1, min(cfg.batch - 1, round(cfg.batch * cfg.clip_share)))  # the clip's windows per batch
     for step in range(cfg.steps):
         ci = torch.randint(len(clip), (n_clip,), generator=g)
