@@ -59,3 +59,26 @@ def test_a_cache_gets_its_share_of_the_windows():
         SegmentDataset([big, small], SegmentConfig(split="all", weights={"small": 0.5, "big": 0.2}))
     with pytest.raises(ValueError, match=r"shares in \(0, 1\]"):
         SegmentDataset([big, small], SegmentConfig(split="all", weights={"small": 0.0}))
+
+
+def test_runtime_options_reach_nested_configs():
+    """--runtime NAME=VALUE sets a runtime field, a dotted name a field of a nested config
+    (physics.kinematic), with the field's type; a wrong name or type is refused naming the fields."""
+    import argparse
+    from avatar_motor.cli import _runtime_config
+
+    def parse(*items):
+        return _runtime_config(argparse.Namespace(runtime=list(items), steps=None, backend=None))
+
+    cfg = parse("physics.kinematic=2", "physics.candidates=4", "smooth_sigma=0", "lock_yaw=false")
+    assert cfg.physics.kinematic == 2.0 and cfg.physics.candidates == 4 and isinstance(cfg.physics.candidates, int)
+    assert cfg.smooth_sigma == 0.0 and cfg.lock_yaw is False
+    assert parse().physics.kinematic != 2.0  # each call starts from the defaults
+    with pytest.raises(ValueError, match="physics fields .*kinematic"):
+        parse("physics.kinematik=2")
+    with pytest.raises(ValueError, match="runtime's fields .*physics"):
+        parse("physics=2")
+    with pytest.raises(ValueError, match="takes a int"):
+        parse("physics.candidates=many")
+    with pytest.raises(ValueError, match="runtime's fields"):
+        parse("nothing.kinematic=2")

@@ -168,16 +168,25 @@ def _runtime_config(a):
         cfg.backend = a.backend
     if getattr(a, "no_processing", False):
         cfg.stages = ()  # the network's output as one body: FK of its rotations (the runtime's fk stage)
-    fields = {f.name: f for f in dataclasses.fields(RuntimeConfig)}
     for item in getattr(a, "runtime", None) or []:
         name, eq, value = item.partition("=")
-        if not eq or name not in fields:
-            raise ValueError(f"--runtime {item!r}: write NAME=VALUE with NAME one of {', '.join(fields)}")
-        kind = type(getattr(cfg, name))
+        *path, last = name.split(".")  # physics.kinematic: a field of a nested config
+        node = cfg
+        for p in path:
+            node = getattr(node, p, None) if p in {f.name for f in dataclasses.fields(node)} else None
+            if not dataclasses.is_dataclass(node):
+                break
+        fields = [f.name for f in dataclasses.fields(node)] if dataclasses.is_dataclass(node) else []
+        if not eq or last not in fields or dataclasses.is_dataclass(getattr(node, last)):
+            where = ".".join(path) + " " if path and fields else ""
+            raise ValueError(f"--runtime {item!r}: write NAME=VALUE with NAME one of the runtime's {where}fields "
+                             f"{', '.join(fields or [f.name for f in dataclasses.fields(RuntimeConfig)])} "
+                             "(a nested one dotted: physics.kinematic=2)")
+        kind = type(getattr(node, last))
         try:
             if kind is tuple:  # a list of names: a,b,c
                 value = tuple(v for v in value.split(",") if v)
-            setattr(cfg, name, value.lower() in ("1", "true", "yes", "on") if kind is bool else kind(value))
+            setattr(node, last, value.lower() in ("1", "true", "yes", "on") if kind is bool else kind(value))
         except ValueError:
             raise ValueError(f"--runtime {item!r}: {name} takes a {kind.__name__}") from None
     return cfg
