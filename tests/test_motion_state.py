@@ -93,40 +93,6 @@ def test_mirroring_and_shape_scaling(tmp_path):
     assert torch.allclose(d_big, d_base * ratio, rtol=1e-3, atol=1e-4)
 
 
-def test_froude_windows_scale_time_with_the_leg(tmp_path):
-    """segment.froude: the average body gets the plain windows; a body with legs r times longer
-    covers r^0.5 times the plain window's ground per frame (speed), each frame a body of the clip
-    (FK of its rotations), and no window reads past its clip."""
-    from avatar_motor.body.skeleton import pelvis_height, rest_offsets
-    cache = _cache_from_fixtures(tmp_path)
-    plain = SegmentDataset([cache], SegmentConfig(split="all"))
-    froude = SegmentDataset([cache], SegmentConfig(split="all", froude=True))
-    n = len(plain.window_starts)
-    starts = plain.window_starts[torch.linspace(0, n - 1, 8).long()]
-    still = torch.zeros(8, dtype=torch.bool)
-    avg = torch.zeros(8, SHAPE_DIM)
-    a, _ = plain.windows(starts, shapes=avg, mirror=still)
-    b, _ = froude.windows(starts, shapes=avg, mirror=still)
-    assert (a - b).abs().max() < 1e-4
-    for leg in (-2.0, 2.0):
-        shape = torch.zeros(8, SHAPE_DIM)
-        shape[:, 0] = leg
-        r = pelvis_height(rest_offsets(shape[:1], torch.float64))[0] / pelvis_height(rest_offsets(None, torch.float64))
-        p, _ = plain.windows(starts, shapes=shape, mirror=still)
-        f, _ = froude.windows(starts, shapes=shape, mirror=still)
-        path_p = (joints_of(p)[:, 1:, 0] - joints_of(p)[:, :-1, 0])[..., [0, 2]].norm(dim=-1).sum()
-        path_f = (joints_of(f)[:, 1:, 0] - joints_of(f)[:, :-1, 0])[..., [0, 2]].norm(dim=-1).sum()
-        # plain: r times the clip's ground per frame; froude: r^0.5 times (time stretched by r^0.5)
-        assert abs(float(path_f / path_p) - float(r) ** -0.5) < 0.03, (leg, float(path_f / path_p), float(r))
-        from avatar_motor.train.losses import fk_joints
-        assert (fk_joints(f.double(), shape) - joints_of(f)).abs().max() < 1e-4
-    # the last window of the shortest-legged body (the fastest replay) stays inside its clip
-    last = plain.window_starts[-1:]
-    root, _ = froude._resampled(last, 17, torch.tensor([1.1], dtype=torch.float64))
-    end = int(froude.clip_start[-1] + froude.clip_len[-1] - 1)
-    assert torch.allclose(root[0, -1], froude.root_pos[end].double())
-
-
 def test_normalizer_roundtrip_and_validation():
     x = random_states().float().reshape(-1, STATE_DIM)
     n = Normalizer(x.mean(0), x.std(0).clamp_min(1e-2))

@@ -34,11 +34,6 @@ class SegmentConfig:
     # their cache's share); the windows not named share the rest in proportion to their number.
     # Default: every window alike.
     weights: dict[str, float] = field(default_factory=dict)
-    # time scaled with the body as well as space (dynamic similarity, Froude number kept): a body
-    # whose legs are r times the average's plays the clip r^0.5 times slower, so its speeds are
-    # r^0.5 times the clip's and its strides r times. Without it (root scaled, time not) every
-    # body keeps the clip's cadence, and at one commanded speed every body takes the same stride.
-    froude: bool = False
 
 
 class SegmentDataset:
@@ -102,36 +97,15 @@ class SegmentDataset:
         x, shapes = self.windows(self.window_starts[idx], generator)
         return x, shapes, self.window_clip[idx]
 
-    def _resampled(self, starts: torch.Tensor, T: int, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Root (B, T, 3) and rotations (B, T, 22, 3, 3) of T frames taken every `step` (B,)
-        source frames from `starts`, interpolated; a window that would run past its clip's end
-        starts earlier (as far as the clip's start allows)."""
-        clip = torch.searchsorted(self.clip_start, starts, right=True) - 1
-        first, last = self.clip_start[clip], self.clip_start[clip] + self.clip_len[clip] - 1
-        span = step.double() * (T - 1)
-        s0 = torch.maximum(torch.minimum(starts.double(), last.double() - span), first.double())
-        t = (s0[:, None] + torch.arange(T, dtype=torch.float64) * step.double()[:, None]).clamp(max=last.double()[:, None])
-        lo = t.floor().long()
-        hi = torch.minimum(lo + 1, last[:, None])
-        w = (t - lo).clamp(0, 1)
-        root = self.root_pos[lo].double() * (1 - w[..., None]) + self.root_pos[hi].double() * w[..., None]
-        R = _lerp_rotations(self.rotmats[lo].double(), self.rotmats[hi].double(), w[..., None, None, None])
-        return root, R
-
     def windows(self, starts: torch.Tensor, generator: torch.Generator | None = None,
                 shapes: torch.Tensor | None = None, mirror: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         cfg = self.cfg
         B, T = len(starts), cfg.frames + 2
+        fr = starts[:, None] + torch.arange(T)
+        root = self.root_pos[fr].double()
+        R = self.rotmats[fr].double()
         if shapes is None:
             shapes = random_shapes(B, generator, cfg.shape_augment) if cfg.shape_augment > 0 else torch.zeros(B, SHAPE_DIM)
-        off = rest_offsets(shapes, torch.float64)  # (B, 22, 3)
-        ratio = pelvis_height(off) / pelvis_height(rest_offsets(None, torch.float64))
-        if cfg.froude:
-            root, R = self._resampled(starts, T, ratio.rsqrt())
-        else:
-            fr = starts[:, None] + torch.arange(T)
-            root = self.root_pos[fr].double()
-            R = self.rotmats[fr].double()
         if mirror is None:
             mirror = (torch.rand(B, generator=generator) < 0.5) if cfg.mirror else torch.zeros(B, dtype=torch.bool)
         if mirror.any():
@@ -140,18 +114,14 @@ class SegmentDataset:
             R_m = (M @ R @ M)[:, :, MIRROR]
             root = torch.where(mirror[:, None, None], root_m, root)
             R = torch.where(mirror[:, None, None, None, None], R_m, R)
+        off = rest_offsets(shapes, torch.float64)  # (B, 22, 3)
+        ratio = pelvis_height(off) / pelvis_height(rest_offsets(None, torch.float64))
         root = root * ratio[:, None, None]
         J, _ = forward_kinematics(root, R[:, :, 0], R[:, :, 1:], off[:, None])
         vel = finite_velocities(J, FPS)[:, 1:]
         x = pack(root[:, 1:], R[:, 1:, 0], R[:, 1:, 1:], J[:, 1:], vel)
         xc, _ = canonicalize(x)
         return xc.float(), shapes.float()
-
-
-def _lerp_rotations(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices between a and b (..., 3, 3) at w (..., 1, 1) in [0, 1]: their 6D
-    columns blended and made orthonormal again (neighbouring frames: a few degrees apart)."""
-    return rot.sixd_to_matrix(rot.matrix_to_6d(a) * (1 - w[..., 0]) + rot.matrix_to_6d(b) * w[..., 0])
 
 
 def _window_cdf(cache_names: list[str], clip_cache: list[int], clip_keys: list[str], window_clip: torch.Tensor,
