@@ -372,3 +372,25 @@ def test_persona_swap_gives_text_windows_a_feet_matched_state_of_another_style(t
     tr.run()  # and training runs with it
     with pytest.raises(ValueError, match="persona_swap"):
         Trainer(_cfg(tmp_path / "q", fixture_cache, model=PTINY, persona_swap=1.5), progress=False)
+
+
+def test_eval_persona_reads_the_part_after_settling(tmp_path, monkeypatch):
+    """With `settle`, the rollouts run that much longer and the evaluator reads their tail: the
+    same frames as the end of a longer rollout without settling (same seed), not its start."""
+    from avatar_motor.eval import persona as P
+    from avatar_motor.runtime.crowd import RuntimeConfig, standing_state
+    motor = _persona_motor(tmp_path)
+    cfg = RuntimeConfig(steps=2)
+    init = standing_state()[None].repeat(2, 1)
+    shapes = torch.zeros(2, SHAPE_DIM)
+    read = []
+    monkeypatch.setattr(P, "top_k", lambda encoders, X, y, k: read.append(X.clone()) or 0.0)
+    methods = {"persona": (motor, None, P._described("train"))}
+    P.eval_persona(methods, [], init, shapes, ["elderly"], seconds=0.5, cfg=cfg, settle=0.5)
+    settled = read[0]
+    assert settled.shape[1] == 16  # a rollout has its initial frame and 15 more
+    read.clear()
+    P.eval_persona(methods, [], init, shapes, ["elderly"], seconds=1.0, cfg=cfg)
+    whole = read[0]
+    assert whole.shape[1] == 31
+    assert torch.allclose(settled, whole[:, 15:]) and not torch.allclose(settled, whole[:, :16])

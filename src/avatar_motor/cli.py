@@ -753,6 +753,8 @@ def _eval_persona(a) -> int:
         raise ValueError(f"the style adaptor knows {styles.cfg.labels}, the data's styles are {classes}")
     if a.evaluators < 1:
         raise ValueError(f"--evaluators must be 1 or more, not {a.evaluators}")
+    if a.settle < 0 or a.seconds <= 0:
+        raise ValueError(f"--settle must be 0 or more and --seconds above 0 (not {a.settle:g} and {a.seconds:g})")
     if a.identify:
         name, _, style = a.identify.partition("=")
         if style not in classes:
@@ -766,8 +768,9 @@ def _eval_persona(a) -> int:
         init, shapes, what = initial_states(caches, a.n, a.seed)
     if not a.skip_table:
         rows = eval_persona(methods_for(motor, base, styles), encs, init, shapes, classes, a.seconds, a.seed,
-                            _runtime_config(a), a.speed)
-        print(format_rows(f"persona (MotionPersona Table 3): {a.n} {what} x {len(classes)} styles x {a.seconds:g} s; "
+                            _runtime_config(a), a.speed, a.settle)
+        settled = f" read after {a.settle:g} s" if a.settle else ""
+        print(format_rows(f"persona (MotionPersona Table 3): {a.n} {what} x {len(classes)} styles x {a.seconds:g} s{settled}; "
                           f"evaluator(s) read {n_real} real held-out clips at CCA {real:.3f} (chance {1 / len(classes):.3f}); "
                           f"steered forward at {a.speed:g} m/s for TPE/TDE",
                           rows, ["CCA", "R@3", "CCA_steered", "FSD_cm", "ASR", "TPE_m", "TDE_rad"]), flush=True)
@@ -775,8 +778,10 @@ def _eval_persona(a) -> int:
     if a.identify:
         from .eval.persona import recognised
         shapes = torch.tensor(motor.config["characterized"]["shape"]).expand(len(init), -1).clone()
-        r = recognised(motor, name, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed)
-        base_r = recognised(motor, None, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed)
+        r = recognised(motor, name, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a), a.speed,
+                       a.settle)
+        base_r = recognised(motor, None, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a),
+                            a.speed, a.settle)
         print(f"{name}: read as {style} in {100 * r['unsteered']:.0f} % of {a.n} rollouts ({what}, {a.seconds:g} s, on the "
               f"clip's body), {100 * r['steered']:.0f} % steered at {a.speed:g} m/s; without the persona "
               f"{100 * base_r['unsteered']:.0f} % / {100 * base_r['steered']:.0f} % (the evaluator reads real clips at {real:.3f})")
@@ -1060,7 +1065,9 @@ def build_parser() -> argparse.ArgumentParser:
     eq.add_argument("--styles", default=str(MODELS / "primal-bandai-styles"), help="the base's style adaptor ('' to skip)")
     eq.add_argument("--data", nargs="*", help="the labelled motion caches (default: dataset-2, whose 7 styles are read)")
     eq.add_argument("--n", type=int, default=45)
-    eq.add_argument("--seconds", type=float, default=3.0)
+    eq.add_argument("--seconds", type=float, default=3.0, help="how long the evaluator reads each rollout")
+    eq.add_argument("--settle", type=float, default=0.0, help="seconds each rollout runs before the part the evaluator "
+                    "reads: 0 reads the change from another character's state, 2 the character once it has taken over")
     eq.add_argument("--speed", type=float, default=1.0, help="goal speed (m/s) of the steered rollouts")
     eq.add_argument("--evaluators", type=int, default=1)
     eq.add_argument("--encoder-steps", type=int, default=600)
