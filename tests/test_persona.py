@@ -394,29 +394,3 @@ def test_eval_persona_reads_the_part_after_settling(tmp_path, monkeypatch):
     whole = read[0]
     assert whole.shape[1] == 31
     assert torch.allclose(settled, whole[:, 15:]) and not torch.allclose(settled, whole[:, :16])
-
-
-def test_persona_mix_draws_unit_mixtures_of_the_styles_own_descriptions():
-    from avatar_motor.train.trainer import PersonaTexts
-    g = torch.Generator().manual_seed(0)
-    texts = PersonaTexts.__new__(PersonaTexts)
-    table = torch.nn.functional.normalize(torch.randn(2, 6, TEXT_DIM, generator=g), dim=-1)
-    texts.table = torch.cat((table, torch.zeros(1, 6, TEXT_DIM)))  # two styles and "no style"
-    texts.clip_style, texts.none = torch.tensor([0, 1, 2]), 2
-    clip = torch.tensor([0, 1, 2]).repeat(50)
-    plain, has = texts.draw(clip, torch.Generator().manual_seed(1))
-    assert has.tolist() == [True, True, False] * 50
-    assert all(any(torch.allclose(plain[k], e) for e in texts.table[int(clip[k])]) for k in range(6))
-    mixed, _ = texts.draw(clip, torch.Generator().manual_seed(1), mix=1.0)
-    m = mixed[has]
-    assert torch.allclose(m.norm(dim=-1), torch.ones(len(m)), atol=1e-5)
-    assert (mixed[~has] == 0).all()
-    # each mixture lies in its own style's span (its part outside it is nil) and is no single sentence
-    for k in range(2):
-        rows = mixed[clip == k]
-        basis = torch.linalg.qr(texts.table[k].T).Q
-        assert torch.allclose(rows - rows @ basis @ basis.T, torch.zeros_like(rows), atol=1e-5)
-        assert (rows @ texts.table[k].T).max() < 0.999
-    half, _ = texts.draw(clip, torch.Generator().manual_seed(1), mix=0.5)
-    single = torch.stack([(half[k] @ texts.table[int(clip[k])].T).max() > 0.9999 for k in range(len(clip)) if has[k]])
-    assert 0.3 < single.float().mean() < 0.7

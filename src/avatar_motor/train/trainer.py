@@ -67,11 +67,6 @@ class TrainConfig:
     # reason: the initial state already tells the style, so without it the text is redundant)
     persona_swap: float = 0.0
     persona_neighbours: int = 256
-    # persona networks: the share of windows with a text that get, instead of one of their style's
-    # descriptions, a random mixture of them (convex weights, made unit length), so that the text
-    # is learnt as a region of the embedding space around the style's sentences, not six points:
-    # an unseen description of a style is nearer that region than any one sentence of it
-    persona_mix: float = 0.0
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     name: str = "avatar-motor-base"
@@ -99,20 +94,10 @@ class PersonaTexts:
         self.clip_style = torch.tensor([index.get(lab.get("style"), len(labels)) for lab in ds.clip_labels])
         self.none = len(labels)
 
-    def draw(self, clip: torch.Tensor, gen: torch.Generator, mix: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each clip's text (B, TEXT_DIM) and whether it has one: one of its style's descriptions,
-        or with chance `mix` a mixture of them with weights uniform on the simplex, unit length."""
+    def draw(self, clip: torch.Tensor, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         style = self.clip_style[clip]
         pick = torch.randint(self.table.shape[1], (len(clip),), generator=gen)
-        text = self.table[style, pick]
-        if mix <= 0:  # (no draw: the generator's stream stays that of recipes without mixing)
-            return text, style != self.none
-        mixed = torch.rand(len(clip), generator=gen) < mix
-        if bool(mixed.any()):
-            w = -torch.log(torch.rand(int(mixed.sum()), self.table.shape[1], generator=gen).clamp_min(1e-12))
-            m = (w[..., None] * self.table[style[mixed]]).sum(1)
-            text[mixed] = m / m.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        return text, style != self.none
+        return self.table[style, pick], style != self.none
 
 
 def resolve_caches(names: list[str]) -> list[Path]:
@@ -184,8 +169,6 @@ class Trainer:
             self.texts = PersonaTexts(self.ds)
         if not 0.0 <= cfg.persona_swap <= 1.0:
             raise ValueError(f"persona_swap is a share of the windows: give a value in [0, 1], not {cfg.persona_swap}")
-        if not 0.0 <= cfg.persona_mix <= 1.0:
-            raise ValueError(f"persona_mix is a share of the windows: give a value in [0, 1], not {cfg.persona_mix}")
         if cfg.init_stats and not cfg.init:
             raise ValueError("init_stats keeps the init checkpoint's normalisation; set init to that checkpoint")
         self.norm = load_checkpoint(cfg.init).norm if cfg.init_stats else load_or_compute_stats(self.ds, self.cache_paths)
@@ -302,7 +285,7 @@ class Trainer:
         """The windows' own conditions: a training description of the clip's style, the body shape
         the window was posed on, the trajectory its root takes; each left out at persona_dropout,
         and the text always where the clip has no style (DeepMimic)."""
-        text, has_text = self.texts.draw(clip, self.gen, self.cfg.persona_mix)
+        text, has_text = self.texts.draw(clip, self.gen)
         present = torch.rand(len(x), 3, generator=self.gen) >= self.cfg.persona_dropout
         present[:, 0] &= has_text
         return PersonaCond(text, shapes, trajectory_of(x[:, 1:]), present)
