@@ -394,3 +394,9 @@ def test_eval_persona_reads_the_part_after_settling(tmp_path, monkeypatch):
     whole = read[0]
     assert whole.shape[1] == 31
     assert torch.allclose(settled, whole[:, 15:]) and not torch.allclose(settled, whole[:, :16])
+
+
+def test_eval_persona_refuses_a_negative_settle_before_loading_anything(capsys):
+    from avatar_motor.cli import main
+    assert main(["eval", "persona", "--settle", "-1", "--model", "/nonexistent"]) == 2
+    assert "--settle must be 0 or more" in capsys.readouterr().err

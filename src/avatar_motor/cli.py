@@ -742,6 +742,8 @@ def _eval_persona(a) -> int:
     from .model.adaptor import load_adaptor
     from .model.checkpoint import load_checkpoint
 
+    if a.settle < 0 or a.seconds <= 0:
+        raise ValueError(f"--settle must be 0 or more and --seconds above 0 (not {a.settle:g} and {a.seconds:g})")
     motor = load_checkpoint(a.model)
     if not motor.net.cfg.persona:
         raise ValueError(f"--model {a.model} has no persona conditions; give the persona model (configs/persona.json)")
@@ -753,8 +755,6 @@ def _eval_persona(a) -> int:
         raise ValueError(f"the style adaptor knows {styles.cfg.labels}, the data's styles are {classes}")
     if a.evaluators < 1:
         raise ValueError(f"--evaluators must be 1 or more, not {a.evaluators}")
-    if a.settle < 0 or a.seconds <= 0:
-        raise ValueError(f"--settle must be 0 or more and --seconds above 0 (not {a.settle:g} and {a.seconds:g})")
     if a.identify:
         name, _, style = a.identify.partition("=")
         if style not in classes:
@@ -1066,8 +1066,9 @@ def build_parser() -> argparse.ArgumentParser:
     eq.add_argument("--data", nargs="*", help="the labelled motion caches (default: dataset-2, whose 7 styles are read)")
     eq.add_argument("--n", type=int, default=45)
     eq.add_argument("--seconds", type=float, default=3.0, help="how long the evaluator reads each rollout")
-    eq.add_argument("--settle", type=float, default=0.0, help="seconds each rollout runs before the part the evaluator "
-                    "reads: 0 reads the change from another character's state, 2 the character once it has taken over")
+    eq.add_argument("--settle", type=float, default=2.0, help="seconds each rollout runs before the part the evaluator "
+                    "reads (TPE, TDE, FSD and ASR are over the whole rollout): 2 reads the character once it has "
+                    "taken over, 0 the change from another character's held-out state")
     eq.add_argument("--speed", type=float, default=1.0, help="goal speed (m/s) of the steered rollouts")
     eq.add_argument("--evaluators", type=int, default=1)
     eq.add_argument("--encoder-steps", type=int, default=600)
