@@ -782,7 +782,8 @@ def _eval_persona(a) -> int:
                        a.settle)
         base_r = recognised(motor, None, classes.index(style), encs, init, shapes, a.seconds, a.seed, _runtime_config(a),
                             a.speed, a.settle)
-        print(f"{name}: read as {style} in {100 * r['unsteered']:.0f} % of {a.n} rollouts ({what}, {a.seconds:g} s, on the "
+        print(f"{name}: read as {style} in {100 * r['unsteered']:.0f} % of {a.n} rollouts ({what}, {a.seconds:g} s after "
+              f"{a.settle:g}, on the "
               f"clip's body), {100 * r['steered']:.0f} % steered at {a.speed:g} m/s; without the persona "
               f"{100 * base_r['unsteered']:.0f} % / {100 * base_r['steered']:.0f} % (the evaluator reads real clips at {real:.3f})")
         out["identify"] = {"name": name, "style": style, **r, "without": base_r}
