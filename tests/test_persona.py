@@ -400,3 +400,30 @@ def test_eval_persona_refuses_a_negative_settle_before_loading_anything(capsys):
     from avatar_motor.cli import main
     assert main(["eval", "persona", "--settle", "-1", "--model", "/nonexistent"]) == 2
     assert "--settle must be 0 or more" in capsys.readouterr().err
+
+
+def test_prior_on_clip_body_preserves_the_clips_body_without_the_name(tmp_path, monkeypatch):
+    """With prior_on_clip_body, prior-preservation windows include the model's own motion on the
+    clip's body (some without a description); without it every prior window is on a random body."""
+    from avatar_motor.train import characterize as C
+    from .fixture_tools import FIXTURES
+    src = _persona_motor(tmp_path)
+    seen = []
+    real_loss = C.motion_loss
+
+    def loss(pred, target, x0, shapes, *rest):
+        seen.append(shapes.clone())
+        return real_loss(pred, target, x0, shapes, *rest)
+    monkeypatch.setattr(C, "motion_loss", loss)
+    clip = str(FIXTURES / "walk_cmu.bvh")
+    _, body = C.clip_windows([clip], src.net.cfg.frames)
+
+    def prior_rows_on_body(flag):
+        seen.clear()
+        cfg = C.CharacterizeConfig(model=str(src.path), clips=[clip], name="x", out=str(tmp_path / f"x{flag}"), steps=6,
+                                   batch=16, prior_avatars=2, prior_seconds=1.0, prior_on_clip_body=flag)
+        C.characterize(cfg, progress=lambda *_: None)
+        n_clip = round(16 * cfg.clip_share)
+        return sum(int(torch.isclose(s[n_clip:], body.float()).all(-1).sum()) for s in seen)
+    assert prior_rows_on_body(False) == 0
+    assert prior_rows_on_body(True) > 0

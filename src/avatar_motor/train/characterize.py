@@ -57,6 +57,10 @@ class CharacterizeConfig:
     # avatar without a persona is preserved too (all with one, it drifted toward the clip's style)
     prior_without_text: float = 0.25
     swap: float = 1.0  # share of the clip windows continued from a feet-matched state of other motion
+    # the model's own motion on the clip's body (the swap's other motion, a prior_without_text
+    # share of it without a description) joins the prior windows, so that this body without the
+    # name keeps moving as before, not only random bodies (persona card: it halved the drift)
+    prior_on_clip_body: bool = True
     swap_neighbours: int = 16  # ... a random one of this many nearest
     seed: int = 0
     threads: int = 0  # 0 = torch default
@@ -166,10 +170,16 @@ def characterize(cfg: CharacterizeConfig, progress=print) -> Path:
     prior, p_shapes, p_text, p_has_text = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed,
                                                         without_text=cfg.prior_without_text)
     progress(f"prior preservation: {len(prior)} windows of the model's own motion ({time.time() - t0:.0f} s)")
+    if cfg.swap > 0 or cfg.prior_on_clip_body:
+        starts, s_shapes, s_text, s_has_text = prior_windows(
+            motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed + 1, shape,
+            without_text=cfg.prior_without_text if cfg.prior_on_clip_body else 0.0)
+        progress(f"other motion: {len(starts)} windows on the clip's body ({time.time() - t0:.0f} s)")
     if cfg.swap > 0:
-        starts, _, _, _ = prior_windows(motor, cfg.prior_avatars, cfg.prior_seconds, N, cfg.seed + 1, shape)
         partners = swap_partners(clip, starts, motor.norm, cfg.swap_neighbours)
-        progress(f"other initial states: {len(starts)} windows on the clip's body ({time.time() - t0:.0f} s)")
+    if cfg.prior_on_clip_body:
+        prior, p_shapes = torch.cat((prior, starts)), torch.cat((p_shapes, s_shapes))
+        p_text, p_has_text = torch.cat((p_text, s_text)), torch.cat((p_has_text, s_has_text))
     ident = identifier(cfg.name)
     net, norm, diffusion = motor.net, motor.norm, motor.diffusion
     net.train()
