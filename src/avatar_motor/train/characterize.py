@@ -57,11 +57,11 @@ class CharacterizeConfig:
     # avatar without a persona is preserved too (all with one, it drifted toward the clip's style)
     prior_without_text: float = 0.25
     swap: float = 1.0  # share of the clip windows continued from a feet-matched state of other motion
+    swap_neighbours: int = 16  # ... a random one of this many nearest
     # the model's own motion on the clip's body (the swap's other motion, a prior_without_text
     # share of it without a description) joins the prior windows, so that this body without the
-    # name keeps moving as before, not only random bodies (persona card: it halved the drift)
+    # name keeps moving as before, not only random bodies (measured in the persona card)
     prior_on_clip_body: bool = True
-    swap_neighbours: int = 16  # ... a random one of this many nearest
     seed: int = 0
     threads: int = 0  # 0 = torch default
 
