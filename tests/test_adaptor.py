@@ -221,6 +221,27 @@ def test_a_reaching_avatar_faces_its_target_until_it_is_near(tmp_path):
     assert torch.allclose(crowd._facing_goal(a), torch.tensor([1.0, 0.0, 0.0]))  # a user's facing goal wins
 
 
+def test_a_reaching_avatar_near_its_target_is_walked_onto_it_and_stopped(tmp_path):
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    ad = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
+    crowd = Crowd(motor, RuntimeConfig(arrive_within=0.5, arrive_time=0.5), adaptors=ad)
+    i = crowd.spawn(position=(1.0, 2.0))
+    a = crowd.avatars[i]
+    pelvis = a.state[135:201].view(22, 3)[0, [0, 2]]
+    assert crowd._velocity_goal(a) is None  # no target, no velocity goal
+    crowd.set_target(i, (float(pelvis[0]) + 2.0, float(pelvis[1])))
+    assert crowd._velocity_goal(a) is None  # far: the adaptor and the facing goal take it there
+    crowd.set_target(i, (float(pelvis[0]) + 0.3, float(pelvis[1]) - 0.2))
+    assert torch.allclose(crowd._velocity_goal(a), torch.tensor([0.6, 0.0, -0.4]), atol=1e-5)  # (target - pelvis) / 0.5 s
+    crowd.set_target(i, (float(pelvis[0]), float(pelvis[1])))
+    assert torch.allclose(crowd._velocity_goal(a), torch.zeros(3), atol=1e-6)  # on it: stop
+    assert Crowd(motor, RuntimeConfig(arrive_within=0.0), adaptors=ad)._velocity_goal(a) is None  # off
+    crowd.set_goal(i, (0.0, 1.0))
+    assert torch.allclose(crowd._velocity_goal(a), torch.tensor([0.0, 0.0, 1.0]))  # a user's velocity goal wins
+
+
 def test_runtime_labels_and_targets(tmp_path):
     from avatar_motor.runtime.crowd import Crowd
     from .conftest_models import tiny_motor

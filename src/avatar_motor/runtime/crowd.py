@@ -121,6 +121,11 @@ class RuntimeConfig:
     # eval reach (45 x 8 targets x 2 s, a 1,686-step adaptor): 0 -> 0.5: minimal pelvis distance
     # 0.081 -> 0.045 m, ASR 0.091 -> 0.106
     face_target_beyond: float = 0.5
+    # a reaching avatar nearer than this (m) to its target, without a velocity goal of its own, is
+    # given one that walks it onto the target and stops it there (0 = never): (target - pelvis) /
+    # arrive_time, through the steering impulse, as a car's "arrive" behaviour slows toward its goal
+    arrive_within: float = 0.5
+    arrive_time: float = 0.5
     # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
     move_weight: float = 0.0  # PRIMAL's L_move (mean joint velocity); 50 with path 40 was our earlier default
     path_weight: float = 0.0  # our L_path (centroid travels at the goal velocity)
@@ -745,17 +750,33 @@ class Crowd:
             impulse_velocity=dv, impulse=impulse,
             shapes=torch.stack([a.shape for a in avs]), gens=[a.gen for a in avs], labels=[a.label for a in avs],
             control_scales=[a.control_scale for a in avs], targets=[a.target for a in avs],
-            adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[a.v_goal for a in avs],
+            adaptors=[a.adaptor if a.adapted else None for a in avs], v_goal=[self._velocity_goal(a) for a in avs],
             facing_goal=[self._facing_goal(a) for a in avs], physics=jobs, personas=[a.persona_text for a in avs],
             teacher=[a.teacher_segments > 0 for a in avs])
+
+    @staticmethod
+    def _to_target(a: AvatarState) -> torch.Tensor:
+        """Horizontal (x, z) from the pelvis of the state the avatar's next segment starts from to
+        its reaching target."""
+        x = a.queue[-1] if a.queue else a.state
+        return a.target - x[SLICES["joints"]][[0, 2]]
+
+    def _velocity_goal(self, a: AvatarState) -> torch.Tensor | None:
+        """The avatar's velocity goal, or, for a reaching avatar without one, the arrival at its
+        target once it is within arrive_within."""
+        if a.v_goal is not None or not a.reaching or self.cfg.arrive_within <= 0:
+            return a.v_goal
+        d = self._to_target(a)
+        if float(d.norm()) > self.cfg.arrive_within:
+            return None
+        return torch.tensor([float(d[0]), 0.0, float(d[1])]) / self.cfg.arrive_time
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
         while it is farther than face_target_beyond."""
         if a.facing_goal is not None or not a.reaching or self.cfg.face_target_beyond <= 0:
             return a.facing_goal
-        x = a.queue[-1] if a.queue else a.state
-        d = a.target - x[SLICES["joints"]][[0, 2]]  # target - pelvis, horizontal
+        d = self._to_target(a)
         n = float(d.norm())
         # hysteresis: a body standing near the threshold would otherwise switch its facing goal
         # on and off from segment to segment; a target that moves off again is faced again
