@@ -70,17 +70,20 @@ def test_projections():
 def test_factored_solve_equals_a_dense_66_by_66_solve():
     torch.manual_seed(0)
     x, _, _, off = _standing(3)
-    cfg = PhysicsConfig(rigidity=20.0, contact=2.0, range_of_motion=1.5, kinematic=4.0)
-    b = prepare(off, cfg)
+    cfg = PhysicsConfig(rigidity=20.0, contact=2.0, range_of_motion=1.5, kinematic=4.0, kinematic_calm=25.0)
+    calm = torch.tensor([False, True, False])  # the middle body is calm: its own kinematic weight
+    b = prepare(off, cfg, calm)
+    assert b.kinematic.tolist() == [4.0, 25.0, 4.0]
     assert torch.allclose(b.factor @ b.factor.transpose(-1, -2), b.matrix)
     y, kin, ground, ranged = (x + 0.05 * torch.randn_like(x) for _ in range(4))
     bones = project_bones(x + 0.02 * torch.randn_like(x), b.rest)
     got = solve_global(b, y, bones, ground, ranged, kin, cfg)
     for i in range(3):  # the energy written out over all 66 coordinates, minimised densely
         m = b.masses[i].repeat_interleave(3) / H**2  # x laid out joint-major: (x0, y0, z0, x1, ...)
-        A = torch.diag(m * (1 + cfg.contact + cfg.range_of_motion + cfg.kinematic))
+        w_kin = cfg.kinematic_calm if calm[i] else cfg.kinematic
+        A = torch.diag(m * (1 + cfg.contact + cfg.range_of_motion + w_kin))
         rhs = m * (y[i].flatten() + cfg.contact * ground[i].flatten() + cfg.range_of_motion * ranged[i].flatten()
-                   + cfg.kinematic * kin[i].flatten())
+                   + w_kin * kin[i].flatten())
         for n, (p, c) in enumerate(BONES.tolist()):
             w = cfg.rigidity * min(float(b.masses[i, p]), float(b.masses[i, c])) / H**2
             S = torch.zeros(3, 66, dtype=torch.float64)
@@ -369,6 +372,27 @@ def test_the_prior_s_pull_carries_over_a_join_and_decays():
     assert float((carried[:, 0, feet] - plain[:, 0, feet]).norm(dim=-1).max()) < 0.1 * big
 
 
+def test_a_body_turned_calm_keeps_the_pull_s_strength_not_its_distance():
+    """The pull is carried as weight x distance: a body that turns stiff at a join (calm, its
+    kinematic weight 10x) is pulled as hard as before, so it moves less toward where the compliant
+    body was pulled; carried as a distance, the stiff body would jump to it."""
+    from avatar_motor.physics.simulate import segment
+    state, cands, off = _segment_inputs()
+    cfg = PhysicsConfig()
+    ahead = cands.clone()
+    ahead[..., -132:-66] += torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64).repeat(22)
+    _, _, _, _, pulls = segment(prepare(off, cfg), state, ahead, cfg)
+    last = pulls[:, 0]
+    moved = {}
+    for calm in (False, True):
+        b = prepare(off, cfg, torch.tensor([calm]))
+        assert float(b.kinematic[0]) == (cfg.kinematic_calm if calm else cfg.kinematic)
+        plain, *_ = segment(b, state, cands, cfg)
+        carried, *_ = segment(b, state, cands, cfg, pull=last)
+        moved[calm] = float((carried[0, 0, 135:201] - plain[0, 0, 135:201]).abs().max())
+    assert 0 < moved[True] < 0.5 * moved[False]
+
+
 def test_a_ball_knocks_the_body_and_bounces_off():
     """3 kg at 10 m/s into the chest from the front: the chest goes back, the ball comes back slower,
     and the momentum the ball lost is about what the body took (restitution below 1)."""
@@ -509,8 +533,9 @@ def test_eval_physics_measures_falls_responses_penetration_and_ghost_forces():
 
 
 def test_the_soft_correction_runs_after_an_external_effect_only(tmp_path, monkeypatch):
-    """Crowd.SETTLE: a body in physics mode is corrected (DROP §6) from an external effect (turning
-    physics on, a force, a push, a ball, a spring) until SETTLE s after it; unperturbed, not."""
+    """Crowd.SETTLE: a body in physics mode is corrected (DROP §6) and compliant (the kinematic
+    weight, not kinematic_calm) from an external effect (a force, a push, a ball, a spring) until
+    SETTLE s after it; unperturbed, and just turned on, it is calm."""
     from avatar_motor.runtime import crowd as crowd_module
     from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
     from .conftest_models import tiny_motor
@@ -523,11 +548,11 @@ def test_the_soft_correction_runs_after_an_external_effect_only(tmp_path, monkey
     def disturbed():
         job = crowd.prepare(10**9)
         crowd.abandon(job)
+        assert job.physics[0].calm != job.physics[0].disturbed  # (the flat floor, nothing near)
         return job.physics[0].disturbed
 
-    assert disturbed()  # just turned on
-    while crowd.avatars[i].frame < (SETTLE + 0.6) * 30:
-        crowd.step_segment()
+    assert not disturbed()  # just turned on: nothing hit it
+    crowd.step_segment()
     assert not disturbed()
     for act in (lambda: crowd.apply_force(i, "pelvis", [100.0, 0.0, 0.0], 0.1),
                 lambda: crowd.push(i, "pelvis", [1.0, 0.0, 0.0]),
@@ -540,6 +565,41 @@ def test_the_soft_correction_runs_after_an_external_effect_only(tmp_path, monkey
         while crowd.avatars[i].frame < crowd.avatars[i].disturbed_until + 1:
             crowd.step_segment()
         assert not disturbed()
+
+
+def test_a_calm_body_samples_its_own_candidates_and_a_hit_or_an_obstacle_ends_the_calm(tmp_path):
+    """A calm body (nothing acting on it, the flat floor, no obstacle within CALM_CLEARANCE) samples
+    candidates_calm segments and is solved with kinematic_calm; a push, a tilted ground or a box
+    near it bring back DROP's K candidates and compliant weight."""
+    from avatar_motor.physics.environment import Box
+    from avatar_motor.runtime.crowd import CALM_CLEARANCE, Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    crowd = Crowd(tiny_motor(tmp_path), RuntimeConfig(), 0)
+    i, j = crowd.spawn(), crowd.spawn(position=(6.0, 0.0))
+    crowd.set_physics(i, True)
+    crowd.set_physics(j, True)
+    cfg = crowd.cfg.physics
+
+    def calm():
+        job = crowd.prepare(10**9)
+        crowd.abandon(job)
+        phys = list(range(len(job)))
+        return [jb.calm for jb in job.physics], crowd._candidate_counts(job, phys)
+
+    assert calm() == ([True, True], [cfg.candidates_calm] * 2)
+    frames = crowd.step_segment()  # one calm segment runs (its candidates repeated to the batch's K)
+    assert all(torch.isfinite(f).all() for f in frames.values())
+    crowd.push(i, "pelvis", [1.5, 0.0, 0.0])
+    assert calm() == ([False, True], [cfg.candidates, cfg.candidates_calm])
+    crowd.step_segment()  # a compliant body beside a calm one, in one batch
+    crowd.avatars[i].disturbed_until = 0
+    assert calm()[0] == [True, True]
+    pelvis = crowd.state(j)[135:138]
+    crowd.add_obstacle((float(pelvis[0]) + CALM_CLEARANCE, float(pelvis[2])), (0.5, 0.3, 0.5))
+    assert calm()[0] == [True, False]  # j is within reach of the box, i 6 m away is not
+    crowd.remove_obstacle(0)
+    crowd.set_ground((5.0, 0.0))
+    assert calm()[0] == [False, False]
 
 
 def test_the_crowd_carries_the_pull_from_segment_to_segment(tmp_path):

@@ -187,7 +187,7 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
         progress(f"{name}: {out['rows'][-1]}")
     if caches:
         out["real"] = real_wrench(caches, n, BEFORE + AFTER, phys, seed)
-    ablations = [("full system", None, rom), ("no prior (kinematic 0)", dataclasses.replace(cfg.physics, kinematic=0.0), rom),
+    ablations = [("full system", None, rom), ("no prior (kinematic 0)", dataclasses.replace(cfg.physics, kinematic=0.0, kinematic_calm=0.0), rom),
                  ("no contact", dataclasses.replace(cfg.physics, contact=0.0), rom), ("no range of motion", None, None),
                  ("soft correction", dataclasses.replace(cfg.physics, correction=CORRECTION), rom)]
     for name, pc, r in ablations:

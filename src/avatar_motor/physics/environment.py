@@ -115,6 +115,15 @@ class Environment:
         """The flat floor and nothing on it."""
         return self.ground.flat and not self.boxes
 
+    def plain_near(self, xz: torch.Tensor, margin: float) -> torch.Tensor:
+        """(B,) bool: for points xz (B, 2) on the floor, the ground is flat and no box's footprint
+        comes within `margin` m of them (measured from its centre less its half diagonal)."""
+        far = torch.full((len(xz),), self.ground.flat, dtype=torch.bool)
+        for b in self.boxes:
+            reach = math.hypot(b.size[0], b.size[2]) / 2 + margin
+            far &= (xz.double() - torch.tensor(b.centre, dtype=torch.float64)).norm(dim=-1) > reach
+        return far
+
     def describe(self) -> dict:
         """For clients (the protocol's `environment` message)."""
         return {"ground": {"tilt": list(self.ground.tilt), "pivot": list(self.ground.pivot)},

@@ -121,12 +121,14 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     trace: a list each frame's energies (solver.energies) are appended to. correcting: the bodies
     the soft correction runs for (None: all, when cfg.correction > 0). env: the ground and the
     obstacles. goals: goal velocities (B, 3) m/s and the weight (B,) of the centre-of-mass velocity
-    energy toward them (0 for a body without a goal), or None. pull (B, 22, 3): where the kinematic
-    energy pulled each joint at the frame x0 is (its target minus the body, as returned for the
-    segment before), or None. The candidates start at the body, so at a join that pull would
-    vanish at once (a jerk twice a second); it is carried into the candidates instead and decays
-    (cfg.pull_halflife), but for the joints on the ground at x0 (PLANTED_MARGIN), which would
-    skate. Also returns each frame's pull (B, N, 22, 3)."""
+    energy toward them (0 for a body without a goal), or None. pull (B, 22, 3): how the kinematic
+    energy pulled each joint at the frame x0 is (its weight times its target minus the body, as
+    returned for the segment before), or None. The candidates start at the body, so at a join that
+    pull would vanish at once (a jerk twice a second); it is carried into the candidates instead
+    and decays (cfg.pull_halflife), but for the joints on the ground at x0 (PLANTED_MARGIN), which
+    would skate. A body whose weight changed at the join (bodies.kinematic: calm or not) keeps the
+    pull's strength, not its distance: a stiff body does not jump to where a compliant one was
+    pulled. Also returns each frame's pull (B, N, 22, 3), weight times distance."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())
@@ -139,9 +141,10 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     out_root, out_rot, out_local, out_J, chosen, ball_frames = [], [], [], [], [], [[] for _ in range(B)]
     lengths = [N] * B
     pulls = []
+    w = bodies.kinematic.to(torch.float64)[:, None, None]
     if pull is not None:  # a joint on the ground keeps its footing: its pull is not carried (skating)
         planted = env.ground.height(x) < REST_HEIGHT.to(x.dtype) + PLANTED_MARGIN
-        pull = pull.double() * (~planted)[..., None]
+        pull = torch.where(w > 0, pull.double() / w.clamp_min(1e-9), 0.0) * (~planted)[..., None]
     # the carried pull's share at each frame: a critically damped decay from 1, at rest
     carried = spring_decay(torch.ones(()), torch.zeros(()), cfg.pull_halflife,
                            torch.arange(1, N + 1, dtype=torch.float64) * H) if pull is not None else None
@@ -169,8 +172,9 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
         if cfg.correction > 0 and any(correcting):  # no force the ground cannot give (DROP §6)
             solved, _, _, contact_forces = correct(solved, x, v, bodies.masses, f, cfg, contact_forces, correcting)
         rows = torch.arange(B)
-        pulls.append(c.joints[rows, k] - solved)
-        off = (pulls[-1] ** 2).sum(-1)  # (B, 22)
+        off = c.joints[rows, k] - solved
+        pulls.append(w * off)
+        off = (off ** 2).sum(-1)  # (B, 22)
         apart = ((off * bodies.masses).sum(-1) / bodies.masses.sum(-1)).sqrt()
         for b in range(B):
             if lengths[b] == N and (hit[b] or float(apart[b]) > cfg.resample_distance):

@@ -84,7 +84,13 @@ class PhysicsConfig:
     rigidity: float = 50.0  # bone springs
     contact: float = 3.0  # ground (DROP w2)
     range_of_motion: float = 3.0  # joint limits (DROP w3)
-    kinematic: float = 3.0  # the motion model's nearest candidate (DROP w_kin)
+    kinematic: float = 3.0  # the motion model's nearest candidate (DROP w_kin), for a body something acts on
+    # ... and for a calm body: nothing from outside (a push, force, spring or ball) for the runtime's
+    # SETTLE seconds, on a flat floor with no obstacle near. Stiff and with one candidate, the body
+    # follows the model as the kinematic runtime does (DROP's weight left it drifting off the data);
+    # hit, it turns compliant, and the weight above gives the physical response (docs/physics.md)
+    kinematic_calm: float = 30.0
+    candidates_calm: int = 1
     # a goal velocity's pull on the centre of mass (DROP Eq. 16; 0: off): as strong as the prior's,
     # it helps a run keep up without pulling a walk off its feet (docs/physics.md)
     com_velocity: float = 3.0
@@ -110,7 +116,7 @@ class PhysicsConfig:
     friction: float = 0.8
 
     def validate(self) -> None:
-        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "com_velocity", "gravity", "correction",
+        for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "kinematic_calm", "com_velocity", "gravity", "correction",
                      "correction_step", "ghost_threshold", "friction"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0 and v == v and v != float("inf")):
@@ -119,8 +125,10 @@ class PhysicsConfig:
             raise ValueError(f"physics mass must be > 0 kg, got {self.mass!r}")
         if not (isinstance(self.iterations, int) and 1 <= self.iterations <= 100):
             raise ValueError(f"physics iterations must be an integer 1..100, got {self.iterations!r}")
-        if not (isinstance(self.candidates, int) and 1 <= self.candidates <= 64):
-            raise ValueError(f"physics candidates must be an integer 1..64, got {self.candidates!r}")
+        for name in ("candidates", "candidates_calm"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and 1 <= v <= 64):
+                raise ValueError(f"physics {name} must be an integer 1..64, got {v!r}")
         if not (self.pull_halflife > 0):
             raise ValueError(f"physics pull_halflife must be > 0 s, got {self.pull_halflife!r}")
         if not (self.resample_distance > 0):
@@ -135,6 +143,7 @@ class Bodies:
     rest: torch.Tensor  # (B, 21) m
     factor: torch.Tensor  # (B, 22, 22) lower Cholesky factor of the per-axis system matrix
     matrix: torch.Tensor  # (B, 22, 22) the system matrix itself (tests compare against it)
+    kinematic: torch.Tensor  # (B,) each body's kinematic weight (PhysicsConfig.kinematic or kinematic_calm)
 
 
 H = 1.0 / FPS  # the time step: one frame of the motion model
@@ -153,24 +162,28 @@ def _bone_weights(masses: torch.Tensor, cfg: PhysicsConfig) -> torch.Tensor:
     return cfg.rigidity * torch.minimum(masses[:, BONES[:, 0]], masses[:, BONES[:, 1]]) / H**2
 
 
-def _diagonal(masses: torch.Tensor, cfg: PhysicsConfig) -> torch.Tensor:
-    """(B, 22) the diagonal terms: momentum, ground, range-of-motion and kinematic energies,
-    mass-weighted."""
-    return masses * (1.0 + cfg.contact + cfg.range_of_motion + cfg.kinematic) / H**2
+def _diagonal(masses: torch.Tensor, cfg: PhysicsConfig, kinematic: torch.Tensor) -> torch.Tensor:
+    """(B, 22) the diagonal terms: momentum, ground, range-of-motion and kinematic energies (each
+    body's kinematic weight (B,)), mass-weighted."""
+    return masses * (1.0 + cfg.contact + cfg.range_of_motion + kinematic[:, None]) / H**2
 
 
-def prepare(offsets: torch.Tensor, cfg: PhysicsConfig | None = None) -> Bodies:
+def prepare(offsets: torch.Tensor, cfg: PhysicsConfig | None = None, calm: torch.Tensor | None = None) -> Bodies:
     """The solver's constants for bodies with bones `offsets` (B, 22, 3): masses, rest lengths,
-    and the system matrix M/h^2 + sum_i w_i A_i^T A_i per axis, factored once."""
+    and the system matrix M/h^2 + sum_i w_i A_i^T A_i per axis, factored once. calm (B,) bool:
+    the bodies whose kinematic energy has the calm weight (None: none)."""
     cfg = cfg or PhysicsConfig()
     cfg.validate()
     offsets = offsets.to(torch.float64)
     B = len(offsets)
     masses = (cfg.mass * MASS_SHARE).expand(B, NUM_JOINTS).clone()
     rest = offsets[:, 1:].norm(dim=-1)
+    kinematic = torch.full((B,), float(cfg.kinematic), dtype=torch.float64)
+    if calm is not None:
+        kinematic[calm] = float(cfg.kinematic_calm)
     G = _incidence(torch.float64)
-    A = torch.diag_embed(_diagonal(masses, cfg)) + G.T @ (_bone_weights(masses, cfg)[:, :, None] * G)
-    return Bodies(offsets, masses, rest, torch.linalg.cholesky(A), A)
+    A = torch.diag_embed(_diagonal(masses, cfg, kinematic)) + G.T @ (_bone_weights(masses, cfg)[:, :, None] * G)
+    return Bodies(offsets, masses, rest, torch.linalg.cholesky(A), A, kinematic)
 
 
 def project_bones(x: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
@@ -248,7 +261,7 @@ def solve_global(bodies: Bodies, y: torch.Tensor, bones: torch.Tensor, ground: t
     (c, t): its rank-one term c c^T on the horizontal axes is solved with the same factor by the
     Sherman-Morrison formula, so the factor stays the body's whatever the goal."""
     m = bodies.masses[..., None] / H**2
-    rhs = m * (y + cfg.contact * ground + cfg.range_of_motion * ranged + cfg.kinematic * kin)
+    rhs = m * (y + cfg.contact * ground + cfg.range_of_motion * ranged + bodies.kinematic[:, None, None] * kin)
     rhs = rhs + _incidence(y.dtype).T @ (_bone_weights(bodies.masses, cfg)[..., None] * bones)
     if com is None:
         return torch.cholesky_solve(rhs, bodies.factor)
@@ -267,14 +280,14 @@ def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor,
     weight/2 times its squared distance to its projection (what `eval physics` plots, DROP Fig. 4)."""
     m = bodies.masses[..., None] / H**2
 
-    def term(w, target):
+    def term(w, target):  # w: a weight, or one per body (B,)
         return 0.5 * w * (m * (it - target) ** 2).sum((-1, -2))
 
     d = it[:, BONES[:, 1]] - it[:, BONES[:, 0]] - project_bones(it, bodies.rest)
     out = {"momentum": term(1.0, y),
            "rigidity": 0.5 * (_bone_weights(bodies.masses, cfg)[..., None] * d ** 2).sum((-1, -2)),
            "contact": term(cfg.contact, project_ground(it, x, env)),
-           "kinematic": term(cfg.kinematic, project_prior(it, cands.joints.to(it.dtype), bodies.masses)[0])}
+           "kinematic": term(bodies.kinematic, project_prior(it, cands.joints.to(it.dtype), bodies.masses)[0])}
     if shift is not None:  # the range of motion's move (range_shift), as the step applies it
         out["range_of_motion"] = term(cfg.range_of_motion, it + shift)
     if com is not None:

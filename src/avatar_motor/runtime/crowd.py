@@ -63,11 +63,15 @@ IMPULSE_SCALE = 30.0
 MAX_FORCE = 5000.0  # N: a force command above this is a mistake (a 400 N s push over one frame is 12,000 N: use an impulse)
 MAX_BALLS = 8  # balls an avatar's simulation keeps (the oldest goes)
 # seconds after an external effect (a force's end, a push, a throw, a spring's release) during
-# which physics mode runs DROP's soft correction: unperturbed, the root-wrench metric reads like
+# which a body in physics mode is compliant, not calm (PhysicsJob.calm), and DROP's soft correction
+# runs when it is on: unperturbed, the root-wrench metric reads like
 # real motion's (eval physics), and 8 avatars corrected at every frame kept 27 frames/s each
 # (39 corrected after effects only)
 SETTLE = 2.0
 BALL_FLIGHT = 1.0  # seconds a thrown ball may fly before it hits: the correction runs that much longer
+# m: a body in physics mode this near an obstacle (or on a tilted ground) is never calm: it may
+# meet it within a segment, and a stiff pull would drag a caught foot through the box's face
+CALM_CLEARANCE = 1.5
 log = logging.getLogger("avatar_motor.runtime")
 
 
@@ -202,7 +206,7 @@ class AvatarState:
     pull_queue: list = field(default_factory=list)
     shown_pull: torch.Tensor | None = None
     pending_balls: list = field(default_factory=list)  # thrown, entering at the next segment
-    # the avatar frame until which the soft correction runs (SETTLE after an external effect)
+    # the avatar frame until which the body is compliant and corrected (SETTLE after an external effect)
     disturbed_until: int = 0
 
     @property
@@ -542,7 +546,7 @@ class Crowd:
         a.physics = bool(on)
         if not a.physics:
             a.forces, a.springs, a.balls, a.shown_balls, a.pending_balls = [], [], [], [], []
-        self._perturbed(a)
+        self._cut(a)  # nothing hit the body: it starts calm (PhysicsJob.calm)
 
     def _physical(self, a: AvatarState, what: str) -> None:
         if not a.physics:
@@ -550,15 +554,20 @@ class Crowd:
                              "turn physics on for it first")
 
     def _perturbed(self, a: AvatarState, until: int | None = None) -> None:
-        """Something physical changed: the queued frames no longer hold (they are cut like a command's).
-        until: see _disturb."""
-        a.planned = ()
+        """Something acts on the body from outside: the queued frames no longer hold (they are cut
+        like a command's) and the body is disturbed (until: see _disturb)."""
         self._disturb(a, until)
+        self._cut(a)
+
+    def _cut(self, a: AvatarState) -> None:
+        """The queued frames no longer hold (physics turned on or off, the world changed), though
+        nothing hit the body."""
+        a.planned = ()
         self._changed(a)
 
     def _disturb(self, a: AvatarState, until: int | None = None) -> None:
         """An external effect on avatar a lasting to frame `until` (None: the first frame a cut
-        makes anew): the soft correction runs until SETTLE after it."""
+        makes anew): the body is compliant (and corrected) until SETTLE after it."""
         end = a.frame + self.keep_on_cut + 1 if until is None else until
         a.disturbed_until = max(a.disturbed_until, end + round(SETTLE * FPS))
 
@@ -642,7 +651,7 @@ class Crowd:
         self.environment = env
         for a in self.avatars.values():
             if a.physics:  # their queued frames met the old world
-                self._perturbed(a)
+                self._cut(a)
 
     def balls(self, i: int) -> list:
         """The balls avatar i's simulation holds at the frame shown (physics.Ball, world)."""
@@ -731,7 +740,8 @@ class Crowd:
             a.planned = self._plan(a)
         N = self.motor.net.cfg.frames
         jobs = []
-        for a in avs:
+        plain_near = self.environment.plain_near(x0[:, SLICES["joints"]][:, [0, 2]], CALM_CLEARANCE)
+        for n_a, a in enumerate(avs):
             if not a.physics:
                 jobs.append(None)
                 continue
@@ -744,7 +754,8 @@ class Crowd:
             # thrown balls stay pending until a segment with them commits (a cut one would lose them)
             disturbed = bool(a.springs) or first <= a.disturbed_until  # a spring while it pulls
             jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls),
-                                   disturbed, a.pull_queue[-1] if a.queue else a.shown_pull))
+                                   disturbed, a.pull_queue[-1] if a.queue else a.shown_pull,
+                                   calm=not disturbed and not bool(impulse[n_a]) and bool(plain_near[n_a])))
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, past=past, has_past=has_past,
             impulse_velocity=dv, impulse=impulse,
@@ -807,9 +818,9 @@ class Crowd:
         has_past = continuous_past(x0c, pastc, batch.has_past)
         t1 = time.perf_counter()
         # 2 condition embedding, 3 reverse diffusion with guidance: one segment per avatar, and for
-        # an avatar in physics mode K candidates instead, all in one batch
-        K = self.cfg.physics.candidates
-        rows = torch.tensor(plain + [k for k in phys for _ in range(K)], dtype=torch.long)
+        # an avatar in physics mode K candidates instead (a calm one: candidates_calm), all in one batch
+        counts = self._candidate_counts(batch, phys)
+        rows = torch.tensor(plain + [k for k, c in zip(phys, counts) for _ in range(c)], dtype=torch.long)
         every = len(rows) == len(batch) and not phys
         sub = batch if every else _subset(batch, rows)
         seg_all = self.sampler.sample(sub, x0c if every else x0c[rows],
@@ -830,8 +841,8 @@ class Crowd:
             seg_w[p] = apply_transform(seg.double(), tf.R[p], tf.t[p]).float()
         t3 = time.perf_counter()
         if phys:
-            seg_w[torch.tensor(phys)], lengths_p, balls_p, pulls_p = self._simulate(batch, phys, seg_all[len(plain):], x0c,
-                                                                                     tf, offsets, floor, has_past)
+            seg_w[torch.tensor(phys)], lengths_p, balls_p, pulls_p = self._simulate(batch, phys, counts, seg_all[len(plain):],
+                                                                                     x0c, tf, offsets, floor, has_past)
             for n, k in enumerate(phys):
                 lengths[k], ball_frames[k], pulls[k] = lengths_p[n], balls_p[n], pulls_p[n]
         t4 = time.perf_counter()
@@ -872,15 +883,22 @@ class Crowd:
             return run_traced_stages(self.cfg, ctx, seg)
         return run_stages(self.cfg, ctx, seg)
 
-    def _simulate(self, batch: SegmentBatch, phys: list[int], cands_c: torch.Tensor, x0c: torch.Tensor, tf: Transform,
-                  offsets: torch.Tensor, floor: torch.Tensor, has_past: torch.Tensor):
-        """Physics mode: the K candidate segments of each such avatar (canonical, as the network
-        made them, on a floor at height `floor` (B,)) as bodies in the world, then the solver
+    def _candidate_counts(self, batch: SegmentBatch, phys: list[int]) -> list[int]:
+        """How many candidate segments each avatar in physics mode samples: PhysicsConfig.candidates,
+        a calm one candidates_calm (PhysicsJob.calm)."""
+        cfg = self.cfg.physics
+        return [cfg.candidates_calm if batch.physics[k].calm else cfg.candidates for k in phys]
+
+    def _simulate(self, batch: SegmentBatch, phys: list[int], counts: list[int], cands_c: torch.Tensor, x0c: torch.Tensor,
+                  tf: Transform, offsets: torch.Tensor, floor: torch.Tensor, has_past: torch.Tensor):
+        """Physics mode: the candidate segments of each such avatar (counts[n] rows each, in turn;
+        canonical, as the network made them, on a floor at height `floor` (B,)) as bodies in the
+        world (a body with fewer than the most candidates repeats its own), then the solver
         through the segment (physics/simulate) in the world's environment, a goal velocity pulling
         on the centre of mass (PhysicsConfig.com_velocity), the kinematic pull carried from the
         frame before where the body continues it (has_past)."""
-        K, N = self.cfg.physics.candidates, cands_c.shape[1]
-        idx = torch.tensor(phys).repeat_interleave(K)
+        N = cands_c.shape[1]
+        idx = torch.tensor(phys).repeat_interleave(torch.tensor(counts))
         # each candidate processed as a plain avatar's segment is (its feet locked and above the
         # ground, one body): the prior pulls toward what the runtime shows, not the network's raw
         # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep)
@@ -889,13 +907,15 @@ class Crowd:
         ctx = StageContext.of(self.cfg, x0c[idx].float(), offsets[idx].float(), _subset(batch, idx),
                               tf.R[idx].transpose(-1, -2).float())
         cands = self._stages(ctx, cands_c.float()).double()
-        cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx]).reshape(len(phys), K, N, STATE_DIM)
+        cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx])
+        K, start = max(counts), torch.tensor([0] + counts[:-1]).cumsum(0)
+        cands = cands[start[:, None] + torch.arange(K)[None] % torch.tensor(counts)[:, None]]  # (P, K, N, 267)
         p = torch.tensor(phys)
         x0 = batch.x0[p].clone()
         # a push (impulse velocity) is a blow on the particles: their velocities change at once
         x0[:, SLICES["velocities"]] += batch.impulse_velocity[p].reshape(len(phys), 66)
         jobs = [batch.physics[k] for k in phys]
-        bodies = prepare_bodies(offsets[p], self.cfg.physics)
+        bodies = prepare_bodies(offsets[p], self.cfg.physics, torch.tensor([job.calm for job in jobs]))
         trace = [] if self.trace is not None else None
         pull = torch.zeros(len(phys), 22, 3, dtype=torch.float64)
         for n, (k, job) in enumerate(zip(phys, jobs)):

@@ -26,6 +26,9 @@ class PhysicsJob:
     thrown: list  # those of them thrown since the last segment (pending until this one commits)
     disturbed: bool = True  # an external effect is recent: the soft correction runs (Crowd.SETTLE)
     pull: torch.Tensor | None = None  # (22, 3) the kinematic energy's pull at the initial state (simulate.segment)
+    # nothing acts on the body and nothing is near it (Crowd.prepare): the solver's calm weight and
+    # candidates (PhysicsConfig.kinematic_calm, candidates_calm)
+    calm: bool = False
 
 
 @dataclass
