@@ -393,6 +393,26 @@ def test_a_body_turned_calm_keeps_the_pull_s_strength_not_its_distance():
     assert 0 < moved[True] < 0.5 * moved[False]
 
 
+def test_a_calm_body_s_toes_roll_down_to_the_ground_a_compliant_one_s_grip_at_rest_height():
+    """CALM_CONTACT_HEIGHT: a toe 1 cm above the floor (below FOOT_CLEARANCE, as a foot rolling over
+    its toes puts it) is left where the model put it on a calm body; a compliant body's is held at
+    its resting height where it was the frame before (static friction)."""
+    from avatar_motor.physics.solver import CALM_CONTACT_HEIGHT
+    x, _, _, off = _standing(2)
+    f = JOINT_INDEX["left_foot"]
+    rolled = x.clone()
+    rolled[:, f] += torch.tensor([0.03, 0.0, 0.02], dtype=torch.float64)
+    rolled[:, f, 1] = 0.01
+    b = prepare(off, PhysicsConfig(), torch.tensor([False, True]))
+    assert torch.equal(b.contact_height[0], REST_HEIGHT) and torch.equal(b.contact_height[1], CALM_CONTACT_HEIGHT)
+    p = project_ground(rolled, x, height=b.contact_height)
+    assert torch.allclose(p[0, f], torch.tensor([x[0, f, 0], REST_HEIGHT[f], x[0, f, 2]], dtype=torch.float64))
+    assert torch.equal(p[1], rolled[1])
+    sunk = rolled.clone()
+    sunk[:, f, 1] = -0.01  # below the floor itself: held on a calm body too
+    assert float(project_ground(sunk, x, height=b.contact_height)[1, f, 1]) == 0.0
+
+
 def test_a_ball_knocks_the_body_and_bounces_off():
     """3 kg at 10 m/s into the chest from the front: the chest goes back, the ball comes back slower,
     and the momentum the ball lost is about what the body took (restitution below 1)."""

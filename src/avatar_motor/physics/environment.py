@@ -134,7 +134,7 @@ FLAT = Environment()
 
 
 def project_ground(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, ground: Ground) -> torch.Tensor:
-    """(B, 22, 3): a joint of x whose centre is less than its resting height rest (22,) above the
+    """(B, 22, 3): a joint of x whose centre is less than its resting height rest ((22,) or (B, 22)) above the
     plane moved onto that height at the place it had in x_prev along the plane (static friction);
     any other joint is itself."""
     n = ground.normal(x.dtype)
