@@ -622,6 +622,33 @@ def test_a_calm_body_samples_its_own_candidates_and_a_hit_or_an_obstacle_ends_th
     assert calm()[0] == [False, False]
 
 
+def test_a_calm_body_s_candidates_are_joined_to_the_frames_shown_before_a_hit_one_s_are_not(tmp_path):
+    """The candidates a calm body follows stiffly go through the join's stages with the frames shown
+    before them, as a plain avatar's segment does; a compliant body's continuity is the solver's."""
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    crowd = Crowd(tiny_motor(tmp_path), RuntimeConfig(), 0)
+    i, j = crowd.spawn(), crowd.spawn(position=(3.0, 0.0))
+    for a in (i, j):
+        crowd.set_physics(a, True)
+    for _ in range(3):
+        crowd.step_segment()  # both have frames shown before them now
+    crowd.push(j, "pelvis", [1.5, 0.0, 0.0])
+    seen = []
+    stages = crowd._stages
+
+    def spy(ctx, seg):
+        seen.append(ctx)
+        return stages(ctx, seg)
+
+    crowd._stages = spy
+    crowd.step_segment()
+    phys = [c for c in seen if c.past is not None and len(c.x0) == 1 + crowd.cfg.physics.candidates]
+    assert len(phys) == 1, [len(c.x0) for c in seen]  # one call for both bodies' candidates
+    has = phys[0].has_past.tolist()
+    assert has == [True] + [False] * crowd.cfg.physics.candidates  # i calm (1 candidate), j hit (K)
+
+
 def test_the_crowd_carries_the_pull_from_segment_to_segment(tmp_path):
     from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
     from .conftest_models import tiny_motor
