@@ -897,8 +897,10 @@ class Crowd:
         through the segment (physics/simulate) in the world's environment, a goal velocity pulling
         on the centre of mass (PhysicsConfig.com_velocity), the kinematic pull carried from the
         frame before where the body continues it (has_past, with the frames before it pastc)."""
-        N = cands_c.shape[1]
-        idx = torch.tensor(phys).repeat_interleave(torch.tensor(counts))
+        N, per = cands_c.shape[1], torch.tensor(counts)
+        idx = torch.tensor(phys).repeat_interleave(per)
+        jobs = [batch.physics[k] for k in phys]
+        calm = torch.tensor([job.calm for job in jobs])
         # each candidate processed as a plain avatar's segment is (its feet locked and above the
         # ground, one body): the prior pulls toward what the runtime shows, not the network's raw
         # frames, whose feet slid and sank (8 unperturbed rollouts: ASR 0.15, toes 7.5 cm deep).
@@ -906,20 +908,18 @@ class Crowd:
         # them as a plain avatar's are (64 rollouts, seeds 0-3: jitter 1.36 -> 1.27); a compliant
         # body's continuity is the solver's momentum (with the simulated past its jerk in a
         # segment's middle rose: 63-78 against 49-63 m/s^3, 32 rollouts)
-        calm = torch.tensor([batch.physics[k].calm for k in phys]) & has_past[phys]
         ctx = StageContext.of(self.cfg, x0c[idx].float(), offsets[idx].float(), _subset(batch, idx),
                               tf.R[idx].transpose(-1, -2).float(), pastc[idx].float(),
-                              calm.repeat_interleave(torch.tensor(counts)))
+                              (calm & has_past[phys]).repeat_interleave(per))
         cands = self._stages(ctx, cands_c.float()).double()
         cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx])
-        K, start = max(counts), torch.tensor([0] + counts[:-1]).cumsum(0)
-        cands = cands[start[:, None] + torch.arange(K)[None] % torch.tensor(counts)[:, None]]  # (P, K, N, 267)
+        K, start = max(counts), per.cumsum(0) - per
+        cands = cands[start[:, None] + torch.arange(K)[None] % per[:, None]]  # (P, K, N, 267)
         p = torch.tensor(phys)
         x0 = batch.x0[p].clone()
         # a push (impulse velocity) is a blow on the particles: their velocities change at once
         x0[:, SLICES["velocities"]] += batch.impulse_velocity[p].reshape(len(phys), 66)
-        jobs = [batch.physics[k] for k in phys]
-        bodies = prepare_bodies(offsets[p], self.cfg.physics, torch.tensor([job.calm for job in jobs]))
+        bodies = prepare_bodies(offsets[p], self.cfg.physics, calm)
         trace = [] if self.trace is not None else None
         pull = torch.zeros(len(phys), 22, 3, dtype=torch.float64)
         for n, (k, job) in enumerate(zip(phys, jobs)):
