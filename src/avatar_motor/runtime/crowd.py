@@ -755,6 +755,7 @@ class Crowd:
             disturbed = bool(a.springs) or first <= a.disturbed_until  # a spring while it pulls
             jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls),
                                    disturbed, a.pull_queue[-1] if a.queue else a.shown_pull,
+                                   # (an impulse queued before physics was turned on disturbed nothing)
                                    calm=not disturbed and not bool(impulse[n_a]) and bool(plain_near[n_a])))
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, past=past, has_past=has_past,
