@@ -12,8 +12,8 @@ from avatar_motor.body import rotations as rot
 from avatar_motor.body.motion_state import unpack
 from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, PARENTS, forward_kinematics, rest_offsets
 from avatar_motor.physics.solver import (BONES, H, MASS_SHARE, REST_HEIGHT, Candidates, PhysicsConfig, inertial_target,
-                                         pose_from_particles, prepare, project_bones, project_ground, project_prior,
-                                         solve_global, step)
+                                         ballistic_candidates, pose_from_particles, prepare, project_bones,
+                                         project_ground, project_prior, rigid_part, solve_global, step)
 from avatar_motor.runtime.crowd import standing_state
 
 
@@ -149,6 +149,57 @@ def test_a_body_held_by_its_prior_stands_and_a_push_moves_it_by_its_size():
         # the prior, which wants to stand, takes the pelvis back within a few frames
         assert path[-1] < 0.5 * max(path)
     assert 0.03 < moved[0] < moved[1] < moved[2], moved
+
+
+def _momenta(x, v, masses):
+    """Linear momentum (B, 3) and angular momentum about the centre of mass (B, 3)."""
+    m = masses[..., None]
+    com = (m * x).sum(1) / m.sum(1)
+    return (m * v).sum(1), (m * torch.linalg.cross(x - com[:, None], v)).sum(1)
+
+
+def test_the_rigid_part_of_a_displacement_carries_all_its_net_force_and_torque():
+    torch.manual_seed(3)
+    x, _, _, off = _standing(2)
+    masses = prepare(off).masses
+    d = 0.05 * torch.randn_like(x)
+    rest = d - rigid_part(d, x, masses)
+    force, torque = _momenta(x, rest, masses)  # d as a velocity: its momenta are its net force and torque
+    assert torch.allclose(force, torch.zeros_like(force), atol=1e-12) and torch.allclose(torque, torch.zeros_like(torque), atol=1e-9)
+    # a rigid motion (a shift and a small turn about any point) is all rigid part
+    w, t = torch.tensor([0.01, -0.02, 0.015], dtype=torch.float64), torch.tensor([0.03, 0.0, -0.01], dtype=torch.float64)
+    rigid = t + torch.linalg.cross(w.expand_as(x), x - x[:, :1])
+    assert torch.allclose(rigid_part(rigid, x, masses), rigid, atol=1e-12)
+
+
+def test_a_body_in_the_air_falls_whatever_its_prior_wants():
+    """The prior wants the body to hover 2 m up: in flight (no joint touching the ground) a
+    compliant body still falls as gravity has it, while the prior shapes it (here: turns it).
+    With ballistic 0 (the prior's net force kept), or calm, it hovers."""
+    x0, root, local, off = _standing()
+    x0 = x0 + torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64)
+    turn = rot.axis_angle_to_matrix(torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64))
+    wanted = x0[:, :1] + ((x0 - x0[:, :1]) @ turn.T)
+    held = Candidates(wanted[:, None], (turn @ root)[:, None], local[:, None])
+
+    def fly(ballistic, calm=False):
+        cfg = PhysicsConfig(ballistic=ballistic)
+        b = prepare(off, cfg, torch.tensor([calm]))
+        x, v = x0.clone(), torch.zeros_like(x0)
+        for _ in range(8):  # as physics.segment steps it
+            joints, flight = ballistic_candidates(b, x, v, held.joints, None, cfg)
+            assert (flight is not None) == (ballistic > 0 and not calm)
+            x, v, _ = step(b, x, v, Candidates(joints, held.root_rot, held.local_rot), cfg=cfg)
+        return x, v, b.masses
+
+    x, v, masses = fly(1.0)
+    p, L = _momenta(x, v, masses)
+    M = float(masses.sum())
+    assert torch.allclose(p / M, torch.tensor([[0.0, -8 * H * 9.81, 0.0]], dtype=torch.float64), atol=1e-9)  # free fall
+    assert float(L.norm()) > 0.05  # and the prior still turns it toward its pose
+    for ballistic, calm in ((0.0, False), (1.0, True)):
+        p_held, _ = _momenta(*fly(ballistic, calm))
+        assert float(p_held[0, 1] / M) > -0.5, (ballistic, calm)  # held up: nowhere near -2.6 m/s
 
 
 def test_inertial_target():
@@ -323,6 +374,36 @@ def test_the_range_of_motion_energy_pulls_a_bent_joint_back():
     held = shin_error(PhysicsConfig(kinematic=0.0, contact=0.0, gravity=0.0), rom)
     assert free > 1.3 and held < free - 0.3, (free, held)
 
+def test_the_joint_limits_are_internal_forces(monkeypatch):
+    """The step that turns a shin bent past its limit back does not move the body (no net force)
+    and spins it less than a range-of-motion pull with its rigid part left in (the rigid part is
+    taken out to first order, at the pose the step starts from: a 1.5 rad bend still turns the
+    body a little)."""
+    from avatar_motor.physics import limits, solver
+    x0, root, local, off = _standing()
+    g = torch.Generator().manual_seed(0)
+    wiggle = rot.axis_angle_to_matrix(0.15 * torch.randn(600, 21, 3, generator=g, dtype=torch.float64))
+    rom = limits.fit(local @ wiggle, local @ wiggle[:200], anchors=64, generator=g)
+    knee, ankle, foot = (JOINT_INDEX[f"left_{n}"] for n in ("knee", "ankle", "foot"))
+    R = rot.axis_angle_to_matrix(torch.tensor([1.5, 0.0, 0.0], dtype=torch.float64))
+    x = x0.clone()
+    for j in (ankle, foot):
+        x[:, j] = x[:, knee] + (R @ (x0[:, j] - x0[:, knee])[..., None])[..., 0]
+    cfg = PhysicsConfig(kinematic=0.0, contact=0.0, gravity=0.0)
+    b = prepare(off, cfg)
+    _, rr, ll, J = pose_from_particles(x, root, local, off)
+
+    def momenta():
+        y, v, _ = step(b, J, torch.zeros_like(J), _held(x0, root, local), cfg=cfg, rom=rom, pose=(rr, ll))
+        assert float((y - J).norm(dim=-1).max()) > 0.05  # it did turn the shin
+        return _momenta(J, v, b.masses)
+
+    p, L = momenta()
+    monkeypatch.setattr(solver, "rigid_part", lambda d, x, m: torch.zeros_like(d))
+    p_kept, L_kept = momenta()
+    assert float(p.norm()) < 1e-9 < 10 < float(p_kept.norm()), (p, p_kept)  # kept, it moves the body at 0.7 m/s
+    assert float(L.norm()) < 0.75 * float(L_kept.norm()), (L, L_kept)
+
 
 def _segment_inputs(N: int = 15, K: int = 1):
     from avatar_motor.body.motion_state import pack
@@ -344,6 +425,31 @@ def test_a_physics_segment_is_one_body_and_stands_when_the_model_stands():
     v = frames[..., -66:].reshape(1, 15, 22, 3)
     J = joints_of(frames)
     assert torch.allclose(v[:, 1:], (J[:, 1:] - J[:, :-1]) * 30, atol=1e-9)  # velocities are the body's
+
+
+def test_a_compliant_body_whose_model_hovers_lands_and_stays_down():
+    """The model's candidates hold the standing pose 10 cm above the floor. A compliant body in
+    that pose falls onto the floor, stays there (the candidates that follow are shifted by the
+    fall, so they do not pull it back up) and follows them to the end of the segment; with
+    ballistic 0 the prior holds it in the air."""
+    from avatar_motor.body.motion_state import joints_of, pack
+    from avatar_motor.physics.simulate import segment
+    x0, root, local, off = _standing()
+    up = x0 + torch.tensor([0.0, 0.10, 0.0], dtype=torch.float64)
+    state = pack(up[:, 0], root, local, up, torch.zeros_like(up))
+    cands = state[:, None, None].expand(1, 1, 15, -1).clone()
+
+    def lowest(cfg):
+        frames, _, _, lengths, _ = segment(prepare(off, cfg), state, cands, cfg)
+        return (joints_of(frames)[0, :, :, 1] - REST_HEIGHT).amin(-1), lengths
+
+    low, lengths = lowest(PhysicsConfig())
+    assert lengths == [15]
+    # down within 4 frames (0.14 s to fall 10 cm); it rebounds by about 2 cm, within the margin
+    # it still touches at (FLIGHT_MARGIN), and settles
+    assert float(low[3:].abs().max()) < 0.03 and float(low[-5:].abs().max()) < 0.005, low
+    held, _ = lowest(PhysicsConfig(ballistic=0.0))
+    assert float(held.min()) > 0.07, held
 
 
 def test_the_prior_s_pull_carries_over_a_join_and_decays():
@@ -631,8 +737,11 @@ def test_a_calm_body_s_candidates_are_joined_to_the_frames_shown_before_a_hit_on
     i, j = crowd.spawn(), crowd.spawn(position=(3.0, 0.0))
     for a in (i, j):
         crowd.set_physics(a, True)
-    for _ in range(3):
-        crowd.step_segment()  # both have frames shown before them now
+    from avatar_motor.runtime.crowd import PAST
+    for _ in range(30):  # until both have frames shown before them (the tiny model's segments can be short)
+        if all(len(a.past) + 1 + len(a.queue) > PAST for a in crowd.avatars.values()):
+            break
+        crowd.step_segment()
     crowd.push(j, "pelvis", [1.5, 0.0, 0.0])
     seen = []
     stages = crowd._stages

@@ -8,7 +8,8 @@ import torch
 
 from avatar_motor.body.motion_state import unpack
 from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, rest_offsets
-from avatar_motor.physics.environment import Box, Environment, Ground, lift_above, project_box, push_out_of_boxes
+from avatar_motor.physics.environment import (Box, Environment, Ground, lift_above, project_box, push_out_of_boxes,
+                                              touching)
 from avatar_motor.physics.solver import (BONES, COLLISION_RADIUS, H, REST_HEIGHT, Candidates, PhysicsConfig, com_pull,
                                          energies, prepare, project_bones, project_ground, solve_global, step)
 from avatar_motor.runtime.crowd import standing_state
@@ -108,6 +109,24 @@ def test_a_body_is_moved_out_of_a_box_as_one_piece_through_the_nearest_face():
     assert not (((moved - c) @ R).abs() < half + r[:, None] - 1e-9).all(-1).any()  # no sphere inside now
     assert torch.equal(push_out_of_boxes(moved, r, env), torch.zeros(2, 3, dtype=torch.float64))
     assert torch.equal(push_out_of_boxes(J, r, Environment()), torch.zeros(2, 3, dtype=torch.float64))
+
+
+def test_a_body_touches_the_ground_or_an_obstacle_within_the_margin_else_it_flies():
+    box = Box((0.0, 1.0), (2.0, 0.3, 0.2))  # top at 0.3 m
+    r = COLLISION_RADIUS
+    J = torch.zeros(4, NUM_JOINTS, 3, dtype=torch.float64)
+    J[..., 1] = 1.0  # every joint 1 m up ...
+    J[1, F, 1] = float(REST_HEIGHT[F]) + 0.02  # ... but a toe 2 cm above where it rests on the floor
+    J[2, F] = torch.tensor([0.1, 0.3 + float(r[F]) + 0.02, 1.0], dtype=torch.float64)  # ... 2 cm above the box
+    J[3, F, 1] = float(REST_HEIGHT[F]) + 0.05  # ... 5 cm above the floor: in the air
+    env = Environment(boxes=(box,))
+    assert touching(J, REST_HEIGHT, r, env, 0.03).tolist() == [False, True, True, False]
+    assert touching(J, REST_HEIGHT, r, Environment(), 0.03).tolist() == [False, True, False, False]
+    # on a floor tilted 10 degrees about x (0.18 m a metre), that toe touches 1 m uphill, not downhill
+    tilted = Environment(Ground(tilt=(10.0, 0.0)))
+    both = J[3:].repeat(2, 1, 1)
+    both[0, F, 2], both[1, F, 2] = 1.0, -1.0
+    assert sorted(touching(both, REST_HEIGHT, r, tilted, 0.03).tolist()) == [False, True]
 
 
 def test_the_centre_of_mass_energy_is_solved_exactly_with_the_bodys_factor():

@@ -169,6 +169,16 @@ def project_contact(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, r
     return p
 
 
+def touching(x: torch.Tensor, rest: torch.Tensor, radius: torch.Tensor, env: Environment, margin: float) -> torch.Tensor:
+    """(B,) bool: some joint of x (B, 22, 3) is within `margin` m of its resting height (22,) above
+    the ground, or its collision sphere (radius (22,)) within `margin` of an obstacle."""
+    near = (env.ground.height(x) < rest.to(x.dtype) + margin).any(-1)
+    for box in env.boxes:
+        q, e, _, _ = box.local(x, radius + margin)
+        near |= (q.abs() < e).all(-1).any(-1)
+    return near
+
+
 def lift_above(J: torch.Tensor, ground: Ground) -> torch.Tensor:
     """(B, 3): how far to move each frame of joints J (B, 22, 3) along the ground's normal so that
     no joint centre is below the plane (zero where none is)."""
