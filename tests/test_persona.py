@@ -427,3 +427,18 @@ def test_prior_on_clip_body_preserves_the_clips_body_without_the_name(tmp_path, 
         return sum(int(torch.isclose(s[n_clip:], body.float()).all(-1).sum()) for s in seen)
     assert prior_rows_on_body(False) == 0
     assert prior_rows_on_body(True) > 0
+
+
+def test_persona_without_leaves_a_condition_out_of_every_training_window(tmp_path, fixture_cache):  # noqa: F811
+    """The ablations of MotionPersona Table 5: a condition never given in training."""
+    from avatar_motor.train.trainer import PersonaTexts, Trainer
+    tr = Trainer(_cfg(tmp_path / "p", fixture_cache, steps=2, model=PTINY, persona_dropout=0.0,
+                      persona_without=["text"]), progress=False)
+    n = len(tr.ds.clip_labels)
+    tr.ds.clip_labels = [{"style": "elderly"} for _ in range(n)]
+    tr.texts = PersonaTexts(tr.ds)
+    x, shapes, clip = tr.ds.sample_indexed(16, torch.Generator().manual_seed(2))
+    c = tr.persona_batch(x, shapes, clip)
+    assert not bool(c.present[:, 0].any()) and bool(c.present[:, 1:].all())  # no text; shape and path always
+    with pytest.raises(ValueError, match="persona_without.*'gait'.*text"):
+        Trainer(_cfg(tmp_path / "q", fixture_cache, model=PTINY, persona_without=["gait"]), progress=False)

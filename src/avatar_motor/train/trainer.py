@@ -27,7 +27,7 @@ from ..io.atomic import recover_folder, replace_folder, write_file
 from ..model.checkpoint import checkpoint_complete, load_checkpoint, save_checkpoint
 from ..model.denoiser import Denoiser, DenoiserConfig
 from ..model.diffusion import Diffusion
-from ..model.persona import TEXT_DIM, PersonaCond, trajectory_of
+from ..model.persona import CONDITIONS, TEXT_DIM, PersonaCond, trajectory_of
 from .losses import motion_loss
 
 LICENCE_NOTE = ("Trained on the Bandai Namco Research Motion Dataset (CC BY-NC 4.0): the weights are for "
@@ -67,6 +67,9 @@ class TrainConfig:
     # reason: the initial state already tells the style, so without it the text is redundant)
     persona_swap: float = 0.0
     persona_neighbours: int = 256
+    # persona networks: conditions never given in training (ablations, MotionPersona Table 5):
+    # any of "text", "shape", "trajectory"
+    persona_without: list[str] = field(default_factory=list)
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     name: str = "avatar-motor-base"
@@ -167,6 +170,9 @@ class Trainer:
         self.ds = SegmentDataset(caches, cfg.segment)
         if cfg.model.persona:
             self.texts = PersonaTexts(self.ds)
+        unknown = set(cfg.persona_without) - set(CONDITIONS)
+        if unknown:
+            raise ValueError(f"persona_without names conditions {sorted(unknown)}; the conditions are {list(CONDITIONS)}")
         if not 0.0 <= cfg.persona_swap <= 1.0:
             raise ValueError(f"persona_swap is a share of the windows: give a value in [0, 1], not {cfg.persona_swap}")
         if cfg.init_stats and not cfg.init:
@@ -288,6 +294,8 @@ class Trainer:
         text, has_text = self.texts.draw(clip, self.gen)
         present = torch.rand(len(x), 3, generator=self.gen) >= self.cfg.persona_dropout
         present[:, 0] &= has_text
+        for name in self.cfg.persona_without:
+            present[:, CONDITIONS.index(name)] = False
         return PersonaCond(text, shapes, trajectory_of(x[:, 1:]), present)
 
     def swapped_initial(self, x: torch.Tensor, shapes: torch.Tensor, clip: torch.Tensor, persona: PersonaCond) -> torch.Tensor:
