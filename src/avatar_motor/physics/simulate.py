@@ -129,7 +129,9 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     and decays (cfg.pull_halflife), but for the joints on the ground at x0 (PLANTED_MARGIN), which
     would skate. A body whose weight changed at the join (bodies.kinematic: calm or not) keeps the
     pull's strength, not its distance: a stiff body does not jump to where a compliant one was
-    pulled. Also returns each frame's pull (B, N, 22, 3), weight times distance."""
+    pulled. A compliant body in flight is carried by gravity and the external forces alone
+    (solver.ballistic_candidates). Also returns each frame's pull (B, N, 22, 3), weight times
+    distance."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())

@@ -267,7 +267,7 @@ def rigid_part(d: torch.Tensor, x: torch.Tensor, masses: torch.Tensor) -> torch.
 
 
 def in_flight(bodies: Bodies, x: torch.Tensor, env: Environment, cfg: PhysicsConfig) -> torch.Tensor | None:
-    """(B,) the share of the prior's rigid pull taken away from each body at x (B, 22, 3)
+    """(B,) the share of the prior's net force taken away from each body at x (B, 22, 3)
     (PhysicsConfig.ballistic for a compliant body with no joint within FLIGHT_MARGIN of the
     ground or an obstacle, else 0), or None when no body flies."""
     if cfg.ballistic <= 0:
