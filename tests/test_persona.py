@@ -215,6 +215,18 @@ def test_eval_control_steers_characters_and_refuses_them_on_a_plain_model(tmp_pa
         control(tiny_motor(tmp_path), None, n=2, seconds=1.2, personas=["a weary old man"])
 
 
+def test_frechet_distance_and_diversity_on_known_gaussians():
+    from avatar_motor.eval.persona import diversity, frechet
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(20000, 3, generator=g, dtype=torch.float64)
+    b = torch.randn(20000, 3, generator=g, dtype=torch.float64) * 2 + torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    # N(0, I) against N((1, 0, 0), 4 I): 1 + 3 (1 + 4 - 2 * 2) = 4
+    assert abs(frechet(a, b) - 4.0) < 0.1 and abs(frechet(a, a)) < 1e-9
+    assert abs(frechet(a, b) - frechet(b, a)) < 1e-6
+    pts = torch.tensor([[0.0, 0.0], [3.0, 0.0], [0.0, 4.0]], dtype=torch.float64)
+    assert abs(diversity(pts) - (3 + 4 + 5) / 3) < 1e-12  # the mean over the pairs, each once
+
+
 def test_trajectory_errors_and_foot_sliding_on_made_up_motion():
     from avatar_motor.body.motion_state import SLICES as S
     from avatar_motor.eval.persona import fsd, trajectory_errors

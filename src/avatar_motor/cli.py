@@ -730,7 +730,7 @@ def _style_evaluators(caches, classes: list[str], seconds: float, steps: int, se
     held = labelled(lambda k: k in check)
     X, _, clip = held.sample_indexed(min(512, 8 * len(held.clip_labels)), torch.Generator().manual_seed(seeds[0]))
     y = torch.tensor([classes.index(held.clip_labels[int(k)][key]) for k in clip])
-    return encs, r_precisions(encs, X, y, canonical=True)["R_precision"], len(check)
+    return encs, r_precisions(encs, X, y, canonical=True)["R_precision"], len(check), X
 
 
 def _eval_persona(a) -> int:
@@ -763,18 +763,21 @@ def _eval_persona(a) -> int:
             raise ValueError(f"--identify {a.identify}: {a.model} was not characterized as {name!r} (adapt persona)")
     out = {}
     if not a.skip_table or a.identify:  # read by the same evaluators, trained or loaded once
-        encs, real, n_real = _style_evaluators(caches, classes, a.seconds, a.encoder_steps,
+        encs, real, n_real, real_X = _style_evaluators(caches, classes, a.seconds, a.encoder_steps,
                                                [a.seed + k for k in range(a.evaluators)])
         init, shapes, what = initial_states(caches, a.n, a.seed)
     if not a.skip_table:
+        from .eval.persona import diversity, features
+        real_f = features(encs, real_X, canonical=True)
+        real_div = sum(diversity(f) for f in real_f) / len(real_f)
         rows = eval_persona(methods_for(motor, base, styles), encs, init, shapes, classes, a.seconds, a.seed,
-                            _runtime_config(a), a.speed, a.settle)
+                            _runtime_config(a), a.speed, a.settle, real_f)
         settled = f" read after {a.settle:g} s" if a.settle else ""
         print(format_rows(f"persona (MotionPersona Table 3): {a.n} {what} x {len(classes)} styles x {a.seconds:g} s{settled}; "
-                          f"evaluator(s) read {n_real} real held-out clips at CCA {real:.3f} (chance {1 / len(classes):.3f}); "
-                          f"steered forward at {a.speed:g} m/s for TPE/TDE",
-                          rows, ["CCA", "R@3", "CCA_steered", "FSD_cm", "ASR", "TPE_m", "TDE_rad"]), flush=True)
-        out.update(real_CCA=real, rows=rows)
+                          f"evaluator(s) read {n_real} real held-out clips at CCA {real:.3f} (chance {1 / len(classes):.3f}), "
+                          f"their diversity {real_div:.3f}; steered forward at {a.speed:g} m/s for TPE/TDE",
+                          rows, ["CCA", "R@3", "CCA_steered", "FPD", "Div", "FSD_cm", "ASR", "TPE_m", "TDE_rad"]), flush=True)
+        out.update(real_CCA=real, real_Div=real_div, rows=rows)
     if a.identify:
         from .eval.persona import recognised
         shapes = torch.tensor(motor.config["characterized"]["shape"]).expand(len(init), -1).clone()

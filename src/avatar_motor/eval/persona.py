@@ -13,13 +13,16 @@ so from the first frame 6 in 7 rollouts begin as someone else and the evaluator 
 of character; after settling it reads the character as it goes on walking, as a spawned avatar
 does in the studio (the real clips it is compared with have no such change).
 FSD is foot sliding: the mean horizontal travel (cm per frame) of a foot joint while it is within
-5 cm of the ground.
+5 cm of the ground. FPD is the Fréchet distance of the read rollouts' evaluator features from
+those of real held-out clips of the same styles (MotionPersona's FPD, with our evaluator as the
+feature extractor; on about a hundred rollouts it is biased upward, so compare it within one
+table), diversity the mean distance between two rollouts' features (real clips' in the header).
 """
 from __future__ import annotations
 
 import torch
 
-from ..body.motion_state import FPS, canonical_transform, canonicalize, joints_of
+from ..body.motion_state import FPS, SLICES, canonical_transform, canonicalize, joints_of
 from ..data.personas import descriptions
 from ..runtime.crowd import RuntimeConfig
 from ..runtime.guidance import facing_of, goal_trajectory
@@ -38,6 +41,38 @@ def top_k(encoders: list, X: torch.Tensor, y: torch.Tensor, k: int) -> float:
             best = sim.topk(k, dim=-1).indices
             out.append(float((best == y[:, None]).any(-1).float().mean()))
     return sum(out) / len(out)
+
+
+@torch.no_grad()
+def features(encoders: list, X: torch.Tensor, canonical: bool = False) -> list[torch.Tensor]:
+    """Each evaluator's embedding (n, d) of motions X: world states (n, T, 267), or canonical
+    windows if `canonical`."""
+    J = X[..., SLICES["joints"]].float() if canonical else canonical_joints(X)
+    return [menc(J[:, :menc.frames]).double() for menc, _ in encoders]
+
+
+def frechet(a: torch.Tensor, b: torch.Tensor) -> float:
+    """The Fréchet distance between Gaussians fitted to feature sets a (n, d) and b (m, d):
+    |mu_a - mu_b|^2 + tr(C_a + C_b - 2 (C_a^1/2 C_b C_a^1/2)^1/2)."""
+    ca, cb = torch.cov(a.T), torch.cov(b.T)
+    w, V = torch.linalg.eigh(ca)
+    root = V @ torch.diag(w.clamp_min(0).sqrt()) @ V.T
+    cross = torch.linalg.eigvalsh(root @ cb @ root).clamp_min(0).sqrt().sum()
+    return float(((a.mean(0) - b.mean(0)) ** 2).sum() + ca.trace() + cb.trace() - 2 * cross)
+
+
+def diversity(f: torch.Tensor) -> float:
+    """The mean distance between two different motions' features f (n, d)."""
+    d = torch.cdist(f, f)
+    n = len(f)
+    return float(d.sum() / (n * (n - 1)))
+
+
+def fpd_div(encoders: list, X: torch.Tensor, real: list[torch.Tensor]) -> tuple[float, float]:
+    """FPD (the Fréchet distance of motions X's evaluator features from the real held-out clips'
+    `real`, one set per evaluator) and diversity, each averaged over the evaluators."""
+    gen = features(encoders, X)
+    return (sum(frechet(g, r) for g, r in zip(gen, real)) / len(gen), sum(diversity(g) for g in gen) / len(gen))
 
 
 def fsd(J: torch.Tensor, height: float = 0.05) -> float:
@@ -108,9 +143,11 @@ def methods_for(persona_motor, base_motor=None, styles_adaptor=None) -> dict:
 
 def eval_persona(methods: dict, encoders: list, init: torch.Tensor, shapes: torch.Tensor, classes: list[str],
                  seconds: float = 3.0, seed: int = 0, cfg: RuntimeConfig | None = None, speed: float = 1.0,
-                 settle: float = 0.0) -> list[dict]:
+                 settle: float = 0.0, real: list[torch.Tensor] | None = None) -> list[dict]:
     """One row per method: CCA and R@3 over the classes (unsteered rollouts, the `seconds` after
-    `settle`), FSD and ASR over them, and TPE/TDE of rollouts steered forward at `speed` m/s."""
+    `settle`), FSD and ASR over them, and TPE/TDE of rollouts steered forward at `speed` m/s.
+    With `real` (`features` of real held-out clips, one set per evaluator): FPD and diversity of
+    the unsteered rollouts' read part too."""
     cfg = cfg or RuntimeConfig()
     s0 = int(settle * FPS)
     frames = s0 + int(seconds * FPS)
@@ -129,6 +166,8 @@ def eval_persona(methods: dict, encoders: list, init: torch.Tensor, shapes: torc
         rows.append({"method": name, "CCA": top_k(encoders, X[:, s0:], y, 1), "R@3": top_k(encoders, X[:, s0:], y, 3),
                      "FSD_cm": fsd(J), "ASR": M.asr(J), "TPE_m": tpe, "TDE_rad": tde,
                      "CCA_steered": top_k(encoders, G[:, s0:], y, 1)})
+        if real is not None:
+            rows[-1]["FPD"], rows[-1]["Div"] = fpd_div(encoders, X[:, s0:], real)
     return rows
 
 
