@@ -775,3 +775,19 @@ def test_the_crowd_carries_the_pull_from_segment_to_segment(tmp_path):
     assert torch.equal(job.pull, a.pull_queue[-1] if a.queue else a.shown_pull)
     crowd.reset(i)
     assert crowd.prepare(10**6).physics[0].pull is None
+
+
+def test_the_flight_rule_holds_on_a_flat_floor_away_from_obstacles_only():
+    """Near an obstacle or on a slope the model keeps its hold of a body in the air (stepping over
+    a bar, the rule dropped a foot into it)."""
+    from avatar_motor.physics.environment import Box, Environment, Ground
+    from avatar_motor.physics.solver import in_flight
+    x0, _, _, off = _standing()
+    up = x0 + torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    cfg = PhysicsConfig()
+    b = prepare(off, cfg)
+    px, pz = float(up[0, 0, 0]), float(up[0, 0, 2])
+    assert in_flight(b, up, Environment(), cfg).tolist() == [1.0]
+    assert in_flight(b, up, Environment(boxes=(Box((px + 5.0, pz), (1.0, 0.2, 0.2)),)), cfg).tolist() == [1.0]
+    assert in_flight(b, up, Environment(boxes=(Box((px + 1.0, pz), (1.0, 0.2, 0.2)),)), cfg) is None
+    assert in_flight(b, up, Environment(ground=Ground(tilt=(10.0, 0.0))), cfg) is None
