@@ -133,11 +133,17 @@ def train_evaluators(ds: SegmentDataset, label_key: str, classes: list[str], sec
 
 
 @torch.no_grad()
+def embed(menc: MotionEncoder, X: torch.Tensor, canonical: bool = False) -> torch.Tensor:
+    """The motion encoder's features (B, d) of motions X: world states (B, T, 267), or canonical
+    windows if `canonical`."""
+    J = X[..., SLICES["joints"]].float() if canonical else canonical_joints(X)
+    return menc(J[:, :menc.frames])
+
+
+@torch.no_grad()
 def predict_labels(menc: MotionEncoder, lenc: LabelEncoder, X: torch.Tensor, canonical: bool = False) -> torch.Tensor:
     """The evaluator's label for motions X: world states (B, T, 267), or canonical windows if `canonical`."""
-    J = X[..., SLICES["joints"]].float() if canonical else canonical_joints(X)
-    emb = menc(J[:, :menc.frames])
-    return (emb @ lenc(torch.arange(lenc.embed.num_embeddings)).T).argmax(-1)
+    return (embed(menc, X, canonical) @ lenc(torch.arange(lenc.embed.num_embeddings)).T).argmax(-1)
 
 
 def r_precisions(encoders: list, X: torch.Tensor, y: torch.Tensor, canonical: bool = False) -> dict:

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import torch
 
-from ..body.motion_state import FPS, SLICES, canonical_transform, canonicalize, joints_of
+from ..body.motion_state import FPS, canonical_transform, canonicalize, joints_of
 from ..data.personas import descriptions
 from ..runtime.crowd import RuntimeConfig
 from ..runtime.guidance import facing_of, goal_trajectory
 from . import metrics as M
-from .adaptation import canonical_joints
+from .adaptation import canonical_joints, embed
 from .realism import rollout
 
 
@@ -43,12 +43,9 @@ def top_k(encoders: list, X: torch.Tensor, y: torch.Tensor, k: int) -> float:
     return sum(out) / len(out)
 
 
-@torch.no_grad()
 def features(encoders: list, X: torch.Tensor, canonical: bool = False) -> list[torch.Tensor]:
-    """Each evaluator's embedding (n, d) of motions X: world states (n, T, 267), or canonical
-    windows if `canonical`."""
-    J = X[..., SLICES["joints"]].float() if canonical else canonical_joints(X)
-    return [menc(J[:, :menc.frames]).double() for menc, _ in encoders]
+    """Each evaluator's embedding (n, d) of motions X (`adaptation.embed`)."""
+    return [embed(menc, X, canonical).double() for menc, _ in encoders]
 
 
 def frechet(a: torch.Tensor, b: torch.Tensor) -> float:
