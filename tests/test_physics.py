@@ -694,11 +694,12 @@ def test_the_soft_correction_runs_after_an_external_effect_only(tmp_path, monkey
 
 
 def test_a_calm_body_samples_its_own_candidates_and_a_hit_or_an_obstacle_ends_the_calm(tmp_path):
-    """A calm body (nothing acting on it, the flat floor, no obstacle within CALM_CLEARANCE) samples
+    """A calm body (nothing acting on it, the flat floor, no obstacle within OBSTACLE_CLEARANCE) samples
     candidates_calm segments and is solved with kinematic_calm; a push, a tilted ground or a box
     near it bring back DROP's K candidates and compliant weight."""
     from avatar_motor.physics.environment import Box
-    from avatar_motor.runtime.crowd import CALM_CLEARANCE, Crowd, RuntimeConfig
+    from avatar_motor.physics.environment import OBSTACLE_CLEARANCE
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
     from .conftest_models import tiny_motor
     crowd = Crowd(tiny_motor(tmp_path), RuntimeConfig(), 0)
     i, j = crowd.spawn(), crowd.spawn(position=(6.0, 0.0))
@@ -721,7 +722,7 @@ def test_a_calm_body_samples_its_own_candidates_and_a_hit_or_an_obstacle_ends_th
     crowd.avatars[i].disturbed_until = 0
     assert calm()[0] == [True, True]
     pelvis = crowd.state(j)[135:138]
-    crowd.add_obstacle((float(pelvis[0]) + CALM_CLEARANCE, float(pelvis[2])), (0.5, 0.3, 0.5))
+    crowd.add_obstacle((float(pelvis[0]) + OBSTACLE_CLEARANCE, float(pelvis[2])), (0.5, 0.3, 0.5))
     assert calm()[0] == [True, False]  # j is within reach of the box, i 6 m away is not
     crowd.remove_obstacle(0)
     crowd.set_ground((5.0, 0.0))

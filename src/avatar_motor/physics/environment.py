@@ -20,6 +20,11 @@ import torch
 MAX_TILT = 30.0  # degrees: steeper ground is a wall, which the motion model has never seen
 MAX_BOXES = 32  # obstacles a world holds
 BOX_SIZE = (0.02, 3.0)  # m: smallest and largest side of an obstacle
+# m: a body this near an obstacle (or anywhere on a tilted ground) may meet it within a segment:
+# the rules for a body in the open (the runtime's calm, stiff pull; the solver's flight rule) do not
+# hold there (a stiff pull drags a caught foot through the box's face, a flight rule drops a
+# stepping foot into it)
+OBSTACLE_CLEARANCE = 1.5
 
 
 def _finite(v, n: int, what: str, lo: float, hi: float) -> tuple:

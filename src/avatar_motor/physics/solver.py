@@ -41,7 +41,7 @@ from ..body import rotations as rot
 from ..body.motion_state import FPS, horizontal
 from ..body.skeleton import FOOT_CLEARANCE, JOINT_INDEX, NUM_JOINTS, PARENTS, forward_kinematics
 from . import environment, limits
-from .environment import FLAT, Environment
+from .environment import OBSTACLE_CLEARANCE, FLAT, Environment
 
 BONES = torch.tensor([(PARENTS[j], j) for j in range(1, NUM_JOINTS)])  # (21, 2): parent, child
 
@@ -88,7 +88,6 @@ CALM_CONTACT_HEIGHT[[JOINT_INDEX["left_foot"], JOINT_INDEX["right_foot"]]] = 0.0
 # Bandai windows the lowest joint is at most 1.7 cm above its resting height (99th percentile);
 # a compliant walker held up by its prior had none in a third of its frames
 FLIGHT_MARGIN = 0.03
-FLIGHT_CLEARANCE = 1.5  # m: the flight rule holds this far from an obstacle (as runtime.crowd.CALM_CLEARANCE)
 
 
 @dataclass
@@ -270,14 +269,14 @@ def rigid_part(d: torch.Tensor, x: torch.Tensor, masses: torch.Tensor) -> torch.
 def in_flight(bodies: Bodies, x: torch.Tensor, env: Environment, cfg: PhysicsConfig) -> torch.Tensor | None:
     """(B,) the share of the prior's net force taken away from each body at x (B, 22, 3)
     (PhysicsConfig.ballistic for a compliant body with no joint within FLIGHT_MARGIN of the
-    ground or an obstacle, on a flat ground and FLIGHT_CLEARANCE from any obstacle; else 0), or
+    ground or an obstacle, on a flat ground and OBSTACLE_CLEARANCE from any obstacle; else 0), or
     None when no body flies."""
     if cfg.ballistic <= 0:
         return None
     flying = ~bodies.calm & ~environment.touching(x, REST_HEIGHT, COLLISION_RADIUS, env, FLIGHT_MARGIN)
     if not env.plain:  # on a slope or near an obstacle the model keeps its hold: a body stepping over
         # a bar dropped its foot into it (the studio's bar test failed in 2 of 6 runs, 0 of 5 without)
-        flying &= env.plain_near(x[:, 0, [0, 2]], FLIGHT_CLEARANCE)
+        flying &= env.plain_near(x[:, 0, [0, 2]], OBSTACLE_CLEARANCE)
     return cfg.ballistic * flying.to(x.dtype) if bool(flying.any()) else None
 
 

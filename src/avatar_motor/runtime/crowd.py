@@ -24,7 +24,7 @@ from ..body.motion_state import (FPS, SLICES, STATE_DIM, Transform, apply_transf
                                  horizontal, velocities_of)
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
-from ..physics.environment import FLAT, MAX_BOXES, Box, Environment, Ground
+from ..physics.environment import OBSTACLE_CLEARANCE, FLAT, MAX_BOXES, Box, Environment, Ground
 from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
 from .processing import PAST, continuous_past, physical_faults
 from .sampler import BatchSwitch, Sampler, _subset
@@ -69,9 +69,6 @@ MAX_BALLS = 8  # balls an avatar's simulation keeps (the oldest goes)
 # (39 corrected after effects only)
 SETTLE = 2.0
 BALL_FLIGHT = 1.0  # seconds a thrown ball may fly before it hits: the correction runs that much longer
-# m: a body in physics mode this near an obstacle (or on a tilted ground) is never calm: it may
-# meet it within a segment, and a stiff pull would drag a caught foot through the box's face
-CALM_CLEARANCE = 1.5
 log = logging.getLogger("avatar_motor.runtime")
 
 
@@ -740,7 +737,7 @@ class Crowd:
             a.planned = self._plan(a)
         N = self.motor.net.cfg.frames
         jobs = []
-        plain_near = self.environment.plain_near(x0[:, SLICES["joints"]][:, [0, 2]], CALM_CLEARANCE)
+        plain_near = self.environment.plain_near(x0[:, SLICES["joints"]][:, [0, 2]], OBSTACLE_CLEARANCE)
         for n_a, a in enumerate(avs):
             if not a.physics:
                 jobs.append(None)
