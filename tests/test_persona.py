@@ -386,6 +386,23 @@ def test_persona_swap_gives_text_windows_a_feet_matched_state_of_another_style(t
         Trainer(_cfg(tmp_path / "q", fixture_cache, model=PTINY, persona_swap=1.5), progress=False)
 
 
+def test_join_jerk_reads_a_seam_at_the_joins_and_nothing_in_smooth_motion():
+    from avatar_motor.eval.metrics import join_jerk
+    t = torch.arange(91, dtype=torch.float64) / 30
+    J = torch.zeros(2, 91, 22, 3, dtype=torch.float64)
+    J[..., 0] = torch.sin(2 * t)[None, :, None]  # every joint swaying smoothly
+    J[..., 2] = (0.5 * t ** 3)[None, :, None]  # and moving on with a constant jerk
+    joins = [[1, 16, 31, 46, 61, 76]] * 2
+    assert abs(join_jerk(J, joins) - 1.0) < 0.1  # seams where there are none: no different
+    seamed = J.clone()
+    for j in joins[0]:
+        seamed[:, j:, :, 1] += 0.01  # each segment starts 1 cm off where the one before ended
+    assert join_jerk(seamed, joins) > 10
+    assert join_jerk(seamed, [[5, 20, 35, 50, 65, 80]] * 2) < 1.0  # read at the wrong frames: the seams count as within
+    with pytest.raises(ValueError, match="both across and away"):
+        join_jerk(J, [[]] * 2)
+
+
 def test_eval_persona_reads_the_part_after_settling(tmp_path, monkeypatch):
     """With `settle`, the rollouts run that much longer and the evaluator reads their tail: the
     same frames as the end of a longer rollout without settling (same seed), not its start."""
@@ -406,6 +423,10 @@ def test_eval_persona_reads_the_part_after_settling(tmp_path, monkeypatch):
     whole = read[0]
     assert whole.shape[1] == 31
     assert torch.allclose(settled, whole[:, 15:]) and not torch.allclose(settled, whole[:, :16])
+    from avatar_motor.eval.realism import rollout
+    joins = []
+    rollout(motor, init, shapes, 30, cfg, 0, joins_out=joins)
+    assert joins == [[1, 16]] * 2  # each segment's first frame (15 frames each), after the initial state
 
 
 def test_eval_persona_refuses_a_negative_settle_before_loading_anything(capsys):

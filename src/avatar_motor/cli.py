@@ -776,7 +776,7 @@ def _eval_persona(a) -> int:
         print(format_rows(f"persona (MotionPersona Table 3): {a.n} {what} x {len(classes)} styles x {a.seconds:g} s{settled}; "
                           f"evaluator(s) read {n_real} real held-out clips at CCA {real:.3f} (chance {1 / len(classes):.3f}), "
                           f"their diversity {real_div:.3f}; steered forward at {a.speed:g} m/s for TPE/TDE",
-                          rows, ["CCA", "R@3", "CCA_steered", "FPD", "Div", "FSD_cm", "ASR", "TPE_m", "TDE_rad"]), flush=True)
+                          rows, ["CCA", "R@3", "CCA_steered", "FPD", "Div", "FSD_cm", "ASR", "join", "TPE_m", "TDE_rad"]), flush=True)
         out.update(real_CCA=real, real_Div=real_div, rows=rows)
     if a.identify:
         from .eval.persona import recognised

@@ -34,6 +34,21 @@ def jitter(J: torch.Tensor) -> float:
     return float(d3.norm(dim=-1).mean() * FPS**3)
 
 
+def join_jerk(J: torch.Tensor, joins: list[list[int]]) -> float:
+    """How much rougher the motion is across segment joins than within segments: the mean jerk
+    magnitude of the third differences that span a join (frames j-1 and j for a join at frame j)
+    over that of all the others (1 for motion without seams). J (B, T, 22, 3); joins: per row, the
+    frames where a segment starts (eval.realism.rollout's joins_out)."""
+    d3 = (J[:, 3:] - 3 * J[:, 2:-1] + 3 * J[:, 1:-2] - J[:, :-3]).norm(dim=-1).mean(-1)  # (B, T-3): window t..t+3
+    spans = torch.zeros_like(d3, dtype=torch.bool)
+    for b, js in enumerate(joins):
+        for j in js:
+            spans[b, max(0, j - 3):max(0, min(j, d3.shape[1]))] = True  # windows t with t <= j-1 < j <= t+3
+    if not bool(spans.any()) or bool(spans.all()):
+        raise ValueError("join_jerk needs frames both across and away from the joins")
+    return float(d3[spans].mean() / d3[~spans].mean())
+
+
 def mean_joint_speed(J: torch.Tensor) -> torch.Tensor:
     """Per-frame mean joint speed (..., T-1) in m/s."""
     return (J[..., 1:, :, :] - J[..., :-1, :, :]).norm(dim=-1).mean(-1) * FPS

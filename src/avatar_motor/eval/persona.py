@@ -12,6 +12,7 @@ after it: the initial states are real held-out states of every style, shared by 
 so from the first frame 6 in 7 rollouts begin as someone else and the evaluator reads the change
 of character; after settling it reads the character as it goes on walking, as a spawned avatar
 does in the studio (the real clips it is compared with have no such change).
+`join` is the jerk across the segment joins over the jerk within segments (1: no seam).
 FSD is foot sliding: the mean horizontal travel (cm per frame) of a foot joint while it is within
 5 cm of the ground. FPD is the Fréchet distance of the read rollouts' evaluator features from
 those of real held-out clips of the same styles (MotionPersona's FPD, with our evaluator as the
@@ -142,7 +143,8 @@ def eval_persona(methods: dict, encoders: list, init: torch.Tensor, shapes: torc
                  seconds: float = 3.0, seed: int = 0, cfg: RuntimeConfig | None = None, speed: float = 1.0,
                  settle: float = 0.0, real: list[torch.Tensor] | None = None) -> list[dict]:
     """One row per method: CCA and R@3 over the classes (unsteered rollouts, the `seconds` after
-    `settle`), FSD and ASR over them, and TPE/TDE of rollouts steered forward at `speed` m/s.
+    `settle`); FSD, ASR and `join` (metrics.join_jerk: in-diffusion blending's own measure) over
+    the whole of them; TPE/TDE of rollouts steered forward at `speed` m/s.
     With `real` (`features` of real held-out clips, one set per evaluator): FPD and diversity of
     the unsteered rollouts' read part too."""
     cfg = cfg or RuntimeConfig()
@@ -151,17 +153,17 @@ def eval_persona(methods: dict, encoders: list, init: torch.Tensor, shapes: torc
     goal = forward_goals(init, speed)
     rows = []
     for name, (motor, adaptor, setup) in methods.items():
-        Xs, ys, Gs = [], [], []
+        Xs, ys, Gs, joins = [], [], [], []
         for c, label in enumerate(classes):
             labelled = None if setup is None else (lambda crowd, i, k, label=label: setup(crowd, i, k, label))
-            Xs.append(rollout(motor, init, shapes, frames, cfg, seed, _controls(labelled), adaptor))
+            Xs.append(rollout(motor, init, shapes, frames, cfg, seed, _controls(labelled), adaptor, joins_out=joins))
             ys.append(torch.full((len(init),), c))
             Gs.append(rollout(motor, init, shapes, frames, cfg, seed, _controls(labelled, goal), adaptor))
         X, y, G = torch.cat(Xs), torch.cat(ys), torch.cat(Gs)
         tpe, tde = trajectory_errors(G, goal.repeat(len(classes), 1))
         J = joints_of(X)
         rows.append({"method": name, "CCA": top_k(encoders, X[:, s0:], y, 1), "R@3": top_k(encoders, X[:, s0:], y, 3),
-                     "FSD_cm": fsd(J), "ASR": M.asr(J), "TPE_m": tpe, "TDE_rad": tde,
+                     "FSD_cm": fsd(J), "ASR": M.asr(J), "join": M.join_jerk(J, joins), "TPE_m": tpe, "TDE_rad": tde,
                      "CCA_steered": top_k(encoders, G[:, s0:], y, 1)})
         if real is not None:
             rows[-1]["FPD"], rows[-1]["Div"] = fpd_div(encoders, X[:, s0:], real)

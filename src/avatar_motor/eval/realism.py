@@ -104,12 +104,14 @@ def format_body(r: dict) -> str:
 
 def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int, cfg: RuntimeConfig, seed: int,
             controls=None, adaptor=None, check: BodyCheck | None = None, physics: bool = False,
-            range_of_motion=None, crowd_out: list | None = None) -> torch.Tensor:
+            range_of_motion=None, crowd_out: list | None = None, joins_out: list | None = None) -> torch.Tensor:
     """Batched autoregressive rollout: (B, 1 + frames, 267) world states of the exported body
     (`exported`), init first. controls(crowd, segment_index) may set goals/impulses/labels before
     each segment; `check` collects the one-body figures of what the runtime emitted. physics:
     every avatar in physics mode (its segments end where the simulation resamples, so avatars
-    run on their own segment boundaries); crowd_out: a list the Crowd is appended to."""
+    run on their own segment boundaries); crowd_out: a list the Crowd is appended to; joins_out:
+    a list each avatar's join frames are appended to (the index in the result of every segment's
+    first frame, from 1: the first segment's join with init)."""
     crowd = Crowd(motor, cfg, seed, adaptor, range_of_motion)
     if crowd_out is not None:
         crowd_out.append(crowd)
@@ -126,6 +128,10 @@ def rollout(motor: Motor, init: torch.Tensor, shapes: torch.Tensor, frames: int,
             made[i].append(out[i])
         n += 1
     X = torch.stack([torch.cat(made[i])[: frames + 1] for i in ids])
+    if joins_out is not None:
+        for i in ids:
+            starts = torch.tensor([len(s) for s in made[i]]).cumsum(0)[:-1]  # after init and each segment
+            joins_out.append([int(j) for j in starts if j <= frames])
     J = body_joints(X.double(), rest_offsets(shapes, torch.float64)[:, None])
     if check is not None:
         check.add(X, J)
