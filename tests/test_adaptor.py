@@ -392,6 +392,10 @@ def test_adaptation_evals_run_on_tiny_models(tmp_path, caplog):
     reach = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
     rows, paths = eval_reach(motor, {"base": None, "ours": reach}, init[:, 0], shapes, seconds=0.5)
     assert 0 < rows[1]["min_dist_m"] <= rows[1]["final_dist_m"] and paths["ours"].shape == (8, 2, 16, 2)
+    per = rows[1]["per_target_m"]  # each target's mean, in TARGETS' order: the paths' nearest approach
+    assert len(per) == 8 and abs(sum(per) / 8 - rows[1]["min_dist_m"]) < 1e-6
+    from avatar_motor.eval.adaptation import TARGETS as T
+    assert abs(per[0] - float((paths["ours"][0] - torch.tensor(T[0])).norm(dim=-1).amin(-1).mean())) < 1e-3
     from avatar_motor.viz import label_grid, target_paths
     from avatar_motor.eval.adaptation import TARGETS, canonical_joints
     clips = {k: [canonical_joints(X[i:i + 1])[0].reshape(-1, 22, 3).numpy() for i in range(len(X))] for k, X in rollouts["ours"].items()}

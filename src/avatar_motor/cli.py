@@ -830,6 +830,9 @@ def _eval_adaptation(a) -> int:
         print(format_rows(f"reaching (Table A4): {a.n} initial states x 8 targets x {a.seconds or 2.0:g} s, "
                           f"adaptor scale {scales}",
                           rows, ["min_dist_m", "final_dist_m", "ASR", "ANCR"]))
+        print("minimal pelvis distance per target (x left, z forward, m from the initial pelvis):")
+        for r in rows:
+            print(f"  {r['method']}: " + ", ".join(f"({x:+g}, {z:+g}) {d:.3f}" for (x, z), d in zip(TARGETS, r["per_target_m"])))
         if a.png:
             target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
             print(f"pelvis paths: {a.png}")
