@@ -28,10 +28,16 @@ def ancr(J: torch.Tensor, depth: float = 0.05) -> float:
     return float((J[..., 1].amin(-1) > -depth).float().mean())
 
 
+def jerks(J: torch.Tensor) -> torch.Tensor:
+    """(..., T - 3, 22) jerk magnitude (m/s^3) of joints J (..., T, 22, 3) over each window of four
+    frames t..t+3 (third differences)."""
+    d3 = J[..., 3:, :, :] - 3 * J[..., 2:-1, :, :] + 3 * J[..., 1:-2, :, :] - J[..., :-3, :, :]
+    return d3.norm(dim=-1) * FPS**3
+
+
 def jitter(J: torch.Tensor) -> float:
     """Mean jerk magnitude (m/s^3), third differences of joint positions."""
-    d3 = J[..., 3:, :, :] - 3 * J[..., 2:-1, :, :] + 3 * J[..., 1:-2, :, :] - J[..., :-3, :, :]
-    return float(d3.norm(dim=-1).mean() * FPS**3)
+    return float(jerks(J).mean())
 
 
 def join_jerk(J: torch.Tensor, joins: list[list[int]]) -> float:
@@ -39,7 +45,7 @@ def join_jerk(J: torch.Tensor, joins: list[list[int]]) -> float:
     magnitude of the third differences that span a join (frames j-1 and j for a join at frame j)
     over that of all the others (1 for motion without seams). J (B, T, 22, 3); joins: per row, the
     frames where a segment starts (eval.realism.rollout's joins_out)."""
-    d3 = (J[:, 3:] - 3 * J[:, 2:-1] + 3 * J[:, 1:-2] - J[:, :-3]).norm(dim=-1).mean(-1)  # (B, T-3): window t..t+3
+    d3 = jerks(J).mean(-1)  # (B, T-3): window t..t+3
     spans = torch.zeros_like(d3, dtype=torch.bool)
     for b, js in enumerate(joins):
         for j in js:
