@@ -28,17 +28,16 @@ from ..data.personas import descriptions
 from ..runtime.crowd import RuntimeConfig
 from ..runtime.guidance import facing_of, goal_trajectory
 from . import metrics as M
-from .adaptation import canonical_joints, embed
+from .adaptation import embed
 from .realism import rollout
 
 
 def top_k(encoders: list, X: torch.Tensor, y: torch.Tensor, k: int) -> float:
     """The share of motions X (world states) whose label y is among each evaluator's k best, averaged."""
-    J = canonical_joints(X)
     out = []
     with torch.no_grad():
-        for menc, lenc in encoders:
-            sim = menc(J[:, :menc.frames]) @ lenc(torch.arange(lenc.embed.num_embeddings)).T
+        for (_, lenc), f in zip(encoders, features(encoders, X)):
+            sim = f.float() @ lenc(torch.arange(lenc.embed.num_embeddings)).T
             best = sim.topk(k, dim=-1).indices
             out.append(float((best == y[:, None]).any(-1).float().mean()))
     return sum(out) / len(out)
