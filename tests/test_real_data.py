@@ -19,3 +19,5 @@ def test_import_show_and_eval_realism_on_bandai(bandai, tmp_path, capsys, artifa
     ancr = float(next(l for l in table.splitlines() if l.startswith("ANCR")).split()[2])
     assert ancr >= 0.99
     assert "no NaN True" in table
+    join = float(next(l for l in table.splitlines() if l.startswith("join roughness")).split()[5])
+    assert join > 0  # 8 x 4 s reads anywhere from 1.7 to 3.9: the figure is for 64 x 8 s

@@ -151,7 +151,8 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
     init = x[:, 0]
     t0 = time.time()
     check = BodyCheck()
-    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check, **sim)
+    joins: list[list[int]] = []
+    X = rollout(motor, init, shapes, int(seconds * FPS), cfg, seed, check=check, joins_out=joins, **sim)
     gen_time = time.time() - t0
     J = joints_of(X)
     real = RealData.load(caches)
@@ -177,6 +178,10 @@ def realism(motor: Motor, caches: list[MotionCache], n: int = 64, seconds: float
         "alive": M.alive_ratio(J), "alive_real": M.alive_ratio(Jr),
         "seconds_per_rollout_batch": gen_time,
     }
+    try:  # physics mode may resample every few frames, leaving no window away from a join
+        res["join_ratio"] = M.join_jerk(J, joins)
+    except ValueError:
+        pass
     res.update(check.summary())
     if stability_seconds > 0:
         k = min(stability_n, n)
@@ -230,6 +235,8 @@ def format_realism(r: dict) -> str:
         ("jitter ratio", f"{r['jitter_ratio']:.2f}", "1.00", "<= 1.5"),
         ("alive ratio", f"{r['alive']:.2f}", f"{r['alive_real']:.2f}", "within 0.15 of real"),
     ]
+    if "join_ratio" in r:  # jerk across segment joins over within segments: the seams' roughness
+        rows.append(("join roughness (across / within)", f"{r['join_ratio']:.2f}", "1.00", "1 is seamless"))
     out = [f"realism: {r['n']} rollouts x {r['seconds']:.0f} s, {r['steps']} denoising steps ({r.get('sampler', 'ddpm')})"
            + (", physics mode" if r.get("physics") else ""),
            f"{'metric':34s} {'generated':>10s} {'real':>8s}  goal"]
