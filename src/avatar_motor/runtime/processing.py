@@ -380,9 +380,8 @@ def spring_decay(x: torch.Tensor, v: torch.Tensor, halflife: float, t: torch.Ten
 
 # the rotations whose turn at a join inertialize matches: spine, neck, head and arms, and for a
 # body without a facing goal its root. Not the legs: with theirs matched too the joins were
-# smoother still, but over a minute the avatars stopped stepping and stood (alive in the last
-# 20 s of eval realism 0.30 -> 0.04; with half their turn matched 0.14); not the root of a body
-# turning toward a facing goal: it then turned later (eval control facing error 0.061 -> 0.078)
+# smoother still, but over a minute the avatars stopped stepping and stood; not the root of a
+# body turning toward a facing goal: it then turned later (figures: the persona card, blending)
 _TURN_MATCHED = torch.tensor([j != 0 and not any(k in name for k in ("hip", "knee", "ankle", "foot"))
                               for j, name in enumerate(JOINT_NAMES)])
 _ROOT = torch.arange(22) == 0
