@@ -709,7 +709,7 @@ def test_inertialization_matches_the_upper_body_turn_at_the_join():
         return rot.matrix_to_axis_angle(unpack(out).local_rot[:, 0, j] @ unpack(x0).local_rot[:, j].transpose(-1, -2)).norm(dim=-1)
 
     x0_turn = rot.matrix_to_axis_angle(unpack(x0).local_rot[:, arm] @ unpack(past[:, -1]).local_rot[:, arm].transpose(-1, -2)).norm(dim=-1)
-    matched = inertialize(x0, new, 0.2, match_velocity=yes, past=past, has_past=yes)
+    matched = inertialize(x0, new, 0.2, match_velocity=yes, before=past[:, -1], has_before=yes)
     plain = inertialize(x0, new, 0.2, match_velocity=yes)
     # the arm keeps turning as it did before the join; without the frame before it jumps to the new rate
     assert float((first_turn(matched, arm) - x0_turn).abs().max()) < 0.01
@@ -717,7 +717,7 @@ def test_inertialization_matches_the_upper_body_turn_at_the_join():
     # legs are blended in position only, with or without it (see _TURN_MATCHED)
     assert torch.allclose(unpack(matched).local_rot[..., knee, :, :], unpack(plain).local_rot[..., knee, :, :], atol=1e-12)
     # a pushed body (match_velocity false) keeps its new motion's turn
-    pushed = inertialize(x0, new, 0.2, match_velocity=~yes, past=past, has_past=yes)
+    pushed = inertialize(x0, new, 0.2, match_velocity=~yes, before=past[:, -1], has_before=yes)
     assert torch.allclose(pushed, inertialize(x0, new, 0.2, match_velocity=~yes), atol=1e-12)
 
 
@@ -733,15 +733,15 @@ def test_inertialization_matches_the_root_turn_of_a_body_without_a_facing_goal()
         return rot.matrix_to_axis_angle(unpack(out).root_rot[:, 0] @ unpack(x0).root_rot.transpose(-1, -2)).norm(dim=-1)
 
     x0_turn = rot.matrix_to_axis_angle(unpack(x0).root_rot @ unpack(past[:, -1]).root_rot.transpose(-1, -2)).norm(dim=-1)
-    out = inertialize(x0, new, 0.2, match_velocity=yes, past=past, has_past=yes, turn_root=free)
-    plain = inertialize(x0, new, 0.2, match_velocity=yes, past=past, has_past=yes)
+    out = inertialize(x0, new, 0.2, match_velocity=yes, before=past[:, -1], has_before=yes, turn_root=free)
+    plain = inertialize(x0, new, 0.2, match_velocity=yes, before=past[:, -1], has_before=yes)
     # the free body's root keeps turning as it did before the join (to within the spring's curvature
     # over one frame, ~0.02 rad for this 2.4 rad/s change); the steered one's jumps to the new rate
     assert float((first_turn(out)[0] - x0_turn[0]).abs()) < 0.025
     assert float((first_turn(out)[1] - x0_turn[1]).abs()) > 0.05
     assert torch.allclose(out[1], plain[1], atol=1e-12)
     # a body with no past frames has no turn to match
-    assert torch.allclose(inertialize(x0, new, 0.2, match_velocity=yes, past=past, has_past=~yes, turn_root=free),
+    assert torch.allclose(inertialize(x0, new, 0.2, match_velocity=yes, before=past[:, -1], has_before=~yes, turn_root=free),
                           inertialize(x0, new, 0.2, match_velocity=yes), atol=1e-12)
 
 

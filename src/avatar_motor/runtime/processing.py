@@ -388,8 +388,8 @@ _ROOT = torch.arange(22) == 0
 
 
 def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
-                match_velocity: torch.Tensor | None = None, past: torch.Tensor | None = None,
-                has_past: torch.Tensor | None = None, turn_root: torch.Tensor | None = None) -> torch.Tensor:
+                match_velocity: torch.Tensor | None = None, before: torch.Tensor | None = None,
+                has_before: torch.Tensor | None = None, turn_root: torch.Tensor | None = None) -> torch.Tensor:
     """Blend the start of generated frames seg (B, N, 267) into the initial state x0 (B, 267).
 
     The new motion, extrapolated back one frame to the time of x0 (x1 - (x2 - x1)), should be x0;
@@ -400,10 +400,10 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     minus the new motion's first velocity), so the stream has no kink at the join. Where it is
     false (the avatar was just pushed: x0's velocity carries an impulse that the network has
     already turned into motion and must not be added again) only positions are blended. With
-    the frames shown before x0 (past (B, P, 267), oldest first, where has_past (B,)), the
-    velocities of the upper body's rotations are matched as well (each one's turn from the frame
-    before to x0 against the new motion's first turn; _TURN_MATCHED), and the root's where
-    turn_root (B,); other rotations are blended in position only.
+    the frame shown before x0 (before (B, 267), where has_before (B,)), the velocities of the
+    upper body's rotations are matched as well (each one's turn from it to x0 against the new
+    motion's first turn; _TURN_MATCHED), and the root's where turn_root (B,); other rotations are
+    blended in position only.
     Velocities are then recomputed as backward differences, so the result is consistent.
     """
     B, N, _ = seg.shape
@@ -414,7 +414,6 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     back = 2 * u.joints[:, 0] - u.joints[:, nxt]  # the segment extrapolated to x0's time
     off_J = (u0.joints - back).reshape(B, 1, 66)
     off_V = torch.zeros_like(off_J)
-    with_past = past is not None and match_velocity is not None and N > 1
     if match_velocity is not None and N > 1:
         v_new = (u.joints[:, nxt] - u.joints[:, 0]) * FPS
         off_V = torch.where(match_velocity.reshape(B, 1, 1), (u0.velocities - v_new).reshape(B, 1, 66), off_V)
@@ -430,14 +429,13 @@ def inertialize(x0: torch.Tensor, seg: torch.Tensor, halflife: float = 0.1,
     S_back = 2 * S[:, 0] - S[:, nxt]  # extrapolated back one frame
     off_r = S0 - S_back
     off_w = torch.zeros_like(off_r)
-    if with_past:
+    if before is not None and match_velocity is not None and N > 1:
         # the per frame turns: x0's from the frame before, the new motion's first
         turned = _TURN_MATCHED.reshape(1, 22, 1)
         if turn_root is not None:
             turned = turned | (turn_root.reshape(B, 1, 1) & _ROOT.reshape(1, 22, 1))
-        use = (match_velocity & has_past).reshape(B, 1, 1) & turned
-        S_1 = past[:, -1, ROTATIONS].reshape(B, 22, 6)
-        off_w = torch.where(use, ((S0 - S_1) - (S[:, 0] - S_back)) * FPS, off_w)
+        use = (match_velocity & has_before).reshape(B, 1, 1) & turned
+        off_w = torch.where(use, ((S0 - before[:, ROTATIONS].reshape(B, 22, 6)) - (S[:, 0] - S_back)) * FPS, off_w)
     S = S + spring_decay(off_r[:, None], off_w[:, None], halflife, t[..., None])
     return torch.cat((root_pos, S.reshape(B, N, 132), joints.reshape(B, N, 66),
                       _backward_velocities(x0, joints).reshape(B, N, 66)), -1)

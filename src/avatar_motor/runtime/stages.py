@@ -156,9 +156,10 @@ def _snap(cfg, ctx: StageContext, seg):
 
 
 def _inertialize(cfg, ctx: StageContext, seg):
+    before = None if ctx.past is None else ctx.past[:, -1]
     # a body's own turn carries across the join unless it is turning toward a facing goal
-    return inertialize(ctx.x0, seg, cfg.inertia_halflife, match_velocity=ctx.match_velocity, past=ctx.past,
-                       has_past=ctx.has_past, turn_root=~ctx.has_facing)
+    return inertialize(ctx.x0, seg, cfg.inertia_halflife, match_velocity=ctx.match_velocity, before=before,
+                       has_before=ctx.has_past, turn_root=~ctx.has_facing)
 
 
 def _fk(cfg, ctx: StageContext, seg):
