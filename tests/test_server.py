@@ -15,7 +15,7 @@ from avatar_motor.body.rotations import quat_to_matrix
 from avatar_motor.body.skeleton import SHAPE_DIM, forward_kinematics, rest_offsets
 from avatar_motor.client import Client
 from avatar_motor.runtime.crowd import RuntimeConfig
-from avatar_motor.serve.server import Server
+from avatar_motor.serve.server import BURST, RATE, Server
 from avatar_motor.serve.world import World
 
 from .conftest_models import SHIPPED, shipped_or_tiny, tiny_motor
@@ -155,6 +155,7 @@ def test_fuzzed_messages_leave_the_server_alive_at_30fps(server):
                 replies += 1
                 errors += m["type"] == "error"
         assert replies + dropped == 1000 and replies >= 240 and errors > 70, (replies, dropped, errors)
+        time.sleep(BURST / RATE)  # the flood emptied the client's bucket: commands sent now may be dropped
         c.command({"type": "goal", "avatar": 0, "velocity": None})
         c.command({"type": "reset", "avatar": 0})
         c.drain()
@@ -163,6 +164,22 @@ def test_fuzzed_messages_leave_the_server_alive_at_30fps(server):
         assert len(frames) / (time.time() - t0) >= 29.0
     with Client(server.url) as d:  # and a new client still connects
         assert d.welcome["avatars"] == [0]
+
+
+def test_a_command_dropped_over_the_rate_limit_is_named_in_the_client_error(tmp_path):
+    """A command the server dropped over the rate limit gets no reply: the client's error says so
+    (the server's notice) rather than only timing out."""
+    world = World(shipped_or_tiny(tmp_path))
+    world.apply({"type": "spawn"}, log=False)
+    r = Running(world, rate=0.5)
+    try:
+        with Client(r.url, timeout=3.0) as c:
+            for _ in range(BURST):  # the whole burst, then one more over the limit
+                c.send_raw(json.dumps({"type": "goal", "avatar": 0, "velocity": [1.0, 0.0]}))
+            with pytest.raises(TimeoutError, match="rate limit: .* dropped"):
+                c.command({"type": "reset", "avatar": 0})
+    finally:
+        r.stop()
 
 
 def test_token_required_beyond_loopback(tmp_path):

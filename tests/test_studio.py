@@ -297,9 +297,15 @@ def test_physics_in_the_studio(tmp_path, artifacts):
             if sum((a - b) ** 2 for a, b in zip(p0, p1)) ** 0.5 < 0.05:
                 break
         # the hand first; the page (3-4 frames/s here) is slow to say where it is while it moves,
-        # so a miss tries a larger part (the spring and the mouse path are the same)
-        for w in (JOINT_INDEX[n] for n in ("right_wrist", "right_wrist", "head", "spine3", "pelvis")):
+        # so a miss tries a larger part (the spring and the mouse path are the same); a part the
+        # page would not grab there (moved since, or under a panel) is not clicked
+        springs = []
+        for w in (JOINT_INDEX[n] for n in ("right_wrist", "right_wrist", "head", "spine3", "pelvis", "pelvis")):
             x, y = page.evaluate(f"window.studio.screenOf(0, {w})")
+            aimed = page.evaluate(f"window.studio.pickAt({x}, {y})")
+            if not aimed or aimed["avatar"] != 0:
+                time.sleep(0.3)
+                continue
             before = page.evaluate("window.studio.joints(0)")
             page.mouse.move(x, y)
             page.mouse.down()

@@ -120,7 +120,7 @@ class Client:
 
     def _wait_message(self, pred) -> dict:
         end = time.time() + self.timeout
-        skipped = []
+        skipped, limited = [], None
         try:
             while time.time() < end:
                 try:
@@ -129,10 +129,15 @@ class Client:
                     break
                 if pred(m):
                     return m
+                if m.get("type") == "error" and m.get("id") is None and str(m.get("error", "")).startswith("rate limit:"):
+                    limited = m["error"]
                 skipped.append(m)
         finally:
             for m in skipped:
                 self.messages.put(m)
+        if limited:  # the command was most likely among those dropped
+            raise TimeoutError(f"no reply from the server, which said: {limited}; send fewer commands, or wait "
+                               "for the limit's bucket to refill and send again")
         raise TimeoutError("no reply from the server")
 
     def frames(self, n: int):

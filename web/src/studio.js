@@ -344,6 +344,9 @@ class HumanView {
   // the avatar under the ray and its joint nearest the hit, or null
   pick(ray) {
     const meshes = [...this.humans.values()].map((h) => h.mesh);
+    // three.js keeps a skinned mesh's first bounding sphere, and a ray outside it misses the mesh:
+    // an avatar that walked away from where it was first picked could no longer be grabbed
+    for (const m of meshes) m.computeBoundingSphere();
     const hits = meshes.length ? ray.intersectObjects(meshes) : [];
     if (!hits.length) return null;
     const id = [...this.humans.entries()].find(([, h]) => h.mesh === hits[0].object)[0];
@@ -461,6 +464,13 @@ state.screenOf = (id, joint) => {  // pixel position of a joint
   const b = bodies.get(id);
   if (!b || !b.positions) return null;
   return state.screenOfPoint(b.positions[3 * joint], b.positions[3 * joint + 1], b.positions[3 * joint + 2]);
+};
+state.pickAt = (x, y) => {  // what a click at this pixel grabs: {avatar, joint} or null (tests aim with it)
+  const el = document.elementFromPoint(x, y);
+  if (el !== renderer.domElement) return null;  // a panel over the canvas takes the click
+  pick({ clientX: x, clientY: y });
+  const hit = humans.pick(ray) || view.pick(ray);
+  return hit && { avatar: hit.avatar, joint: hit.joint };
 };
 state.joints = (id) => { const b = bodies.get(id ?? state.selected); return b && b.positions ? Array.from(b.positions) : null; };
 
