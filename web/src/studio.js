@@ -468,8 +468,7 @@ state.screenOf = (id, joint) => {  // pixel position of a joint
 state.pickAt = (x, y) => {  // what a click at this pixel grabs: {avatar, joint} or null (tests aim with it)
   const el = document.elementFromPoint(x, y);
   if (el !== renderer.domElement) return null;  // a panel over the canvas takes the click
-  pick({ clientX: x, clientY: y });
-  const hit = humans.pick(ray) || view.pick(ray);
+  const hit = bodyUnder({ clientX: x, clientY: y });
   return hit && { avatar: hit.avatar, joint: hit.joint };
 };
 state.joints = (id) => { const b = bodies.get(id ?? state.selected); return b && b.positions ? Array.from(b.positions) : null; };
@@ -747,6 +746,10 @@ function pick(ev) {
   mouse.set((ev.clientX / window.innerWidth) * 2 - 1, -(ev.clientY / window.innerHeight) * 2 + 1);
   ray.setFromCamera(mouse, camera);
 }
+function bodyUnder(ev) {  // the avatar part under the pointer (a skinned human, else a capsule), or null
+  pick(ev);
+  return humans.pick(ray) || view.pick(ray);
+}
 function onPlane(y) {
   const plane = new THREE.Plane(new THREE.Vector3(0, 1, 0), -y);
   const hit = new THREE.Vector3();
@@ -773,7 +776,7 @@ renderer.domElement.addEventListener("pointerdown", (ev) => {
     $("magnet").classList.remove("on");
     return;
   }
-  const hit = humans.pick(ray) || view.pick(ray);
+  const hit = bodyUnder(ev);
   if (!hit) return;
   const { avatar, joint, point } = hit;
   state.selected = avatar;
