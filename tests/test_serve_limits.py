@@ -210,3 +210,34 @@ def test_bench_soak_reports_rate_memory_stalls_nan_and_drift(tmp_path):
     assert len(rows) == 2 and all(len(r) == 5 for r in rows)  # time, 2 clients' frames/s, memory, stalls
     assert all(float(r[1]) > 20 and float(r[2]) > 20 and float(r[3]) > 50 for r in rows)
     assert "frames with NaN/inf: 0" in report and "idle drift" in report and (tmp_path / "soak.png").stat().st_size > 1000
+
+
+def test_a_notice_is_not_lost_behind_frames_a_slow_client_has_not_taken():
+    """Frames queue two deep and a slow reader loses the oldest; a notice (the rate limit's) used
+    to go through the same queue and could be lost with them, so the client's error could not
+    name it. Notices go ahead of the next frame, never dropped for a newer one."""
+    from avatar_motor.serve.server import Client as Link, Server
+
+    class SlowSocket:
+        def __init__(self):
+            self.sent = []
+
+        async def send_str(self, text):
+            self.sent.append(text)
+
+        async def send_bytes(self, data):
+            self.sent.append(data)
+
+    async def run():
+        ws = SlowSocket()
+        link = Link(ws, "test", needs_token=False)
+        link.offer(b"frame 1")
+        link.tell("notice")
+        for k in range(2, 6):  # the reader is away: frames 1-3 are dropped for newer ones
+            link.offer(f"frame {k}".encode())
+        sender = asyncio.create_task(Server._sender(None, link))
+        await asyncio.sleep(0.05)
+        sender.cancel()
+        return ws.sent
+
+    assert asyncio.run(run()) == ["notice", b"frame 4", b"frame 5"]

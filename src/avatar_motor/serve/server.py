@@ -35,6 +35,7 @@ ENVIRONMENT_COMMANDS = ("ground", "obstacle", "remove_obstacle")
 RATE = 120.0  # commands per second per client (a 60-Hz stick and clicks fit; a flood does not)
 BURST = 240  # commands a client may send at once
 FLOOD = 2000  # messages over the limit within a second that close the connection
+NOTICES_KEPT = 8  # a client's unsent notices kept (one a second at most is made)
 SUMMARY_EVERY = 10.0  # seconds between log lines about rejected or dropped messages
 GUESSES = 10  # wrong tokens from one address within LOCKOUT seconds before it is refused for LOCKOUT
 LOCKOUT = 60.0
@@ -81,6 +82,9 @@ class Client:
         self.queue: asyncio.Queue = asyncio.Queue(maxsize=2)
         self.rate, self.allowance, self.last = rate, float(BURST), time.monotonic()
         self.dropped = 0  # messages over the rate limit since the client was last told
+        # messages a client must get (a frame may be lost behind a slow reader, a notice not): sent
+        # before the next frame, the newest few kept
+        self.notices: list[str] = []
         self.spawned: set[int] = set()  # avatars this client spawned (its share of the world)
 
     def admit(self) -> bool:
@@ -101,6 +105,12 @@ class Client:
         if self.queue.full():
             self.queue.get_nowait()
         self.queue.put_nowait(data)
+
+    def tell(self, text: str) -> None:
+        """Queue a notice sent ahead of the next frame, never dropped for a newer frame."""
+        if self.authorized:
+            self.notices.append(text)
+            del self.notices[:-NOTICES_KEPT]
 
 
 class Server:
@@ -369,6 +379,8 @@ class Server:
         try:
             while True:
                 data = await client.queue.get()
+                while client.notices:
+                    await client.ws.send_str(client.notices.pop(0))
                 if isinstance(data, bytes):
                     await client.ws.send_bytes(data)
                 else:
@@ -481,7 +493,7 @@ class Server:
                 for c in list(self.clients):
                     c.offer(st)
                     if c.dropped:  # told once a second, not once per message
-                        c.offer(json.dumps({"type": "error", "id": None, "error": (
+                        c.tell(json.dumps({"type": "error", "id": None, "error": (
                             f"rate limit: {c.dropped} messages dropped in the last second (limit "
                             f"{self.rate:g} per second, bursts of {BURST})")}))
                         c.dropped = 0
