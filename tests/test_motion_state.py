@@ -93,30 +93,6 @@ def test_mirroring_and_shape_scaling(tmp_path):
     assert torch.allclose(d_big, d_base * ratio, rtol=1e-3, atol=1e-4)
 
 
-def test_a_reaching_target_ahead_is_the_pelvis_of_a_later_frame_in_the_windows_frame(tmp_path):
-    """sample_ahead's target k frames after a window's end is where the pelvis of a longer window's
-    last frame is (same start, body shape and mirroring), never past the clip, and at k = 0 the
-    window's own last pelvis (the training target of PRIMAL's reaching)."""
-    from avatar_motor.train.adapt import target_of
-    cache = _cache_from_fixtures(tmp_path)
-    ds = SegmentDataset([cache], SegmentConfig(frames=15, split="all"))
-    valid = SegmentDataset([cache], SegmentConfig(frames=22, split="all")).window_starts  # room for 7 more frames
-    starts = valid[torch.linspace(0, len(valid) - 1, 6).long()]
-    shapes = torch.randn(len(starts), SHAPE_DIM, generator=torch.Generator().manual_seed(1))
-    for mirror in (torch.zeros(len(starts), dtype=torch.bool), torch.tensor([True, False] * 3)):
-        for k in (0, 7):
-            longer = SegmentDataset([cache], SegmentConfig(frames=15 + k, split="all"))
-            x_long, _ = longer.windows(starts, shapes=shapes, mirror=mirror)
-            x, _, target = ds._windows(starts, None, shapes, mirror, starts + 16 + k)
-            assert torch.allclose(x, x_long[:, :16], atol=1e-5)
-            assert torch.allclose(target, target_of(x_long), atol=1e-5)
-    g = torch.Generator().manual_seed(0)
-    x, _, clip, target = ds.sample_ahead(64, g, 0)
-    assert torch.equal(target, target_of(x))
-    x, _, clip, target = ds.sample_ahead(256, g, 30)
-    assert target.isfinite().all() and (target - target_of(x)).norm(dim=-1).max() > 0.1  # later frames
-
-
 def test_normalizer_roundtrip_and_validation():
     x = random_states().float().reshape(-1, STATE_DIM)
     n = Normalizer(x.mean(0), x.std(0).clamp_min(1e-2))

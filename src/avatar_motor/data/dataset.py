@@ -87,42 +87,21 @@ class SegmentDataset:
         """(states (B, 1+N, 267) canonical, shapes (B, SHAPE_DIM)), random windows."""
         return self.sample_indexed(batch, generator)[:2]
 
-    def _draw(self, batch: int, generator: torch.Generator | None) -> torch.Tensor:
-        if self.window_cdf is None:
-            return torch.randint(len(self.window_starts), (batch,), generator=generator)
-        u = torch.rand(batch, generator=generator, dtype=torch.float64)
-        return torch.searchsorted(self.window_cdf, u, right=True).clamp(max=len(self.window_starts) - 1)
-
     def sample_indexed(self, batch: int, generator: torch.Generator | None = None):
         """Like sample, plus the index of each window's clip (for its labels)."""
-        idx = self._draw(batch, generator)
+        if self.window_cdf is None:
+            idx = torch.randint(len(self.window_starts), (batch,), generator=generator)
+        else:
+            u = torch.rand(batch, generator=generator, dtype=torch.float64)
+            idx = torch.searchsorted(self.window_cdf, u, right=True).clamp(max=len(self.window_starts) - 1)
         x, shapes = self.windows(self.window_starts[idx], generator)
         return x, shapes, self.window_clip[idx]
 
-    def sample_ahead(self, batch: int, generator: torch.Generator | None, ahead: int):
-        """Like sample_indexed, plus the pelvis XZ (B, 2) in each window's canonical frame a random
-        0-`ahead` frames after the window's last frame (never past its clip's end)."""
-        idx = self._draw(batch, generator)
-        starts = self.window_starts[idx]
-        clip = self.window_clip[idx]
-        last = self.clip_start[clip] + self.clip_len[clip] - 1
-        end = starts + self.cfg.frames + 1
-        k = (torch.rand(batch, generator=generator) * (ahead + 1)).long()
-        x, shapes, target = self._windows(starts, generator, None, None, torch.minimum(end + k, last))
-        return x, shapes, clip, target
-
     def windows(self, starts: torch.Tensor, generator: torch.Generator | None = None,
                 shapes: torch.Tensor | None = None, mirror: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        return self._windows(starts, generator, shapes, mirror)[:2]
-
-    def _windows(self, starts, generator, shapes, mirror, later: torch.Tensor | None = None):
-        """Canonical windows from `starts`, and where given, the pelvis XZ at frame `later` (B,) of
-        each in its window's canonical frame (mirrored and scaled alike)."""
         cfg = self.cfg
         B, T = len(starts), cfg.frames + 2
         fr = starts[:, None] + torch.arange(T)
-        if later is not None:
-            fr = torch.cat((fr, later[:, None]), 1)
         root = self.root_pos[fr].double()
         R = self.rotmats[fr].double()
         if shapes is None:
@@ -138,17 +117,11 @@ class SegmentDataset:
         off = rest_offsets(shapes, torch.float64)  # (B, 22, 3)
         ratio = pelvis_height(off) / pelvis_height(rest_offsets(None, torch.float64))
         root = root * ratio[:, None, None]
-        far = None
-        if later is not None:
-            far, root, R = root[:, -1], root[:, :-1], R[:, :-1]
         J, _ = forward_kinematics(root, R[:, :, 0], R[:, :, 1:], off[:, None])
         vel = finite_velocities(J, FPS)[:, 1:]
         x = pack(root[:, 1:], R[:, 1:, 0], R[:, 1:, 1:], J[:, 1:], vel)
-        xc, tf = canonicalize(x)
-        if far is None:
-            return xc.float(), shapes.float(), None
-        local = (tf.R.transpose(-1, -2) @ (far - tf.t)[..., None])[..., 0]  # the root is the pelvis joint
-        return xc.float(), shapes.float(), local[:, [0, 2]].float()
+        xc, _ = canonicalize(x)
+        return xc.float(), shapes.float()
 
 
 def _window_cdf(cache_names: list[str], clip_cache: list[int], clip_keys: list[str], window_clip: torch.Tensor,

@@ -88,12 +88,6 @@ class AdaptConfig:
     mirror: bool | None = None
     # the training state (weights, average, optimizer, random streams, step, elapsed time) is
     # saved every this many steps, and a run started again with the same `out` continues from it
-    # reaching: the target is the pelvis a random 0 to this many seconds after the window's last
-    # frame (0: at the last frame, PRIMAL's), so targets farther than half a second of motion are learnt
-    target_ahead: float = 0.0
-    # reaching: windows are drawn so that target distances up to this (m) are about equally common
-    # (0: as the data has them, half of them within 2 cm: standing)
-    target_spread: float = 0.0
     checkpoint_every: int = 250
     threads: int = 0  # 0 = torch default
 
@@ -102,21 +96,6 @@ def target_of(x: torch.Tensor) -> torch.Tensor:
     """The reaching target of a canonical window: pelvis XZ of its last frame."""
     J = x[:, -1, SLICES["joints"]].reshape(-1, 22, 3)
     return J[:, 0, [0, 2]]
-
-
-def _reach_batch(ds: SegmentDataset, cfg: AdaptConfig, gen: torch.Generator):
-    """Training windows and targets for reaching (target_ahead, target_spread)."""
-    ahead = round(cfg.target_ahead * 30)
-    if ahead == 0 and cfg.target_spread <= 0:  # PRIMAL's (and the draws of the runs before these options)
-        x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
-        return x, shapes, clip, target_of(x)
-    if cfg.target_spread <= 0:
-        return ds.sample_ahead(cfg.batch, gen, ahead)
-    x, shapes, clip, y = ds.sample_ahead(4 * cfg.batch, gen, ahead)
-    bins = (y.norm(dim=-1) / cfg.target_spread * 10).long().clamp(max=10)
-    w = 1.0 / torch.bincount(bins, minlength=11)[bins].float()
-    pick = torch.multinomial(w, cfg.batch, replacement=False, generator=gen)
-    return x[pick], shapes[pick], clip[pick], y[pick]
 
 
 def _progress(step: int, cfg: AdaptConfig, seconds: float) -> float:
@@ -319,11 +298,11 @@ def adapt(cfg: AdaptConfig, progress: bool = True) -> Path:
         if cfg.lr_schedule == "cosine":
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * _progress(step, cfg, time.time() - t0)))
+        x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
         if cfg.task == "actions":
-            x, shapes, clip = ds.sample_indexed(cfg.batch, gen)
             y = ds_label[clip]
         else:
-            x, shapes, clip, y = _reach_batch(ds, cfg, gen)
+            y = target_of(x)
         xn = motor.norm.encode(x)
         x0n = xn[:, 0]
         drop = torch.rand(cfg.batch, generator=gen) < cfg.control_dropout
