@@ -52,13 +52,15 @@ clean:
 # The shipped model family, rebuilt in dependency order: the motion data, the base (three stages),
 # its one-step EMDM sampler, then the adaptors (actions, styles, reaching) and the persona model
 # (the base fine-tuned with text, shape and trajectory conditions), each shipped into
-# models/ as float16 with the fingerprint of the base it was trained on. About 9 h on 2 CPU
-# cores (base 3.5 h + DeepMimic stages 1.3 h, EMDM 1.1 h, adaptors 3 x 0.5 h, persona 1.5 h, evaluations); needs ../shared. Starts
+# models/ as float16 with the fingerprint of the base it was trained on. About 9.5 h on 2 CPU
+# cores (base 3.5 h + DeepMimic stages 1.3 h, EMDM 1.1 h, actions and styles 2 x 0.5 h, reaching
+# 3 seeds x 17 min and the one nearest its targets on other states than its card's kept, persona
+# 1.5 h, evaluations); needs ../shared. Starts
 # afresh (the runs below are deleted) unless RESUME=1, which continues each interrupted job. A
 # shipped folder keeps its card.md: bring its figures up to date from runs/evals/.
 SHARED ?= ../shared/data/bandai-namco
 PYBULLET ?= pybullet==3.2.7
-FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/base-deepmimic-3 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/persona runs/persona-2
+FAMILY_RUNS := runs/base runs/base-continue runs/base-deepmimic runs/base-deepmimic-2 runs/base-deepmimic-3 runs/emdm runs/adapt-actions runs/adapt-styles runs/adapt-reach runs/adapt-reach-0 runs/adapt-reach-1 runs/adapt-reach-2 runs/persona runs/persona-2
 AM := $(BIN)/avatar-motor
 
 data: install
@@ -82,7 +84,10 @@ models: data
 	$(AM) ship runs/adapt-actions/adaptor models/primal-bandai-actions --scale 2.5
 	$(AM) adapt --config configs/styles.json
 	$(AM) ship runs/adapt-styles/adaptor models/primal-bandai-styles --scale 2.5
-	$(AM) adapt --config configs/reach.json
+	$(AM) adapt --config configs/reach.json --set seed=0 --set out=runs/adapt-reach-0
+	$(AM) adapt --config configs/reach.json --set seed=1 --set out=runs/adapt-reach-1
+	$(AM) adapt --config configs/reach.json --set seed=2 --set out=runs/adapt-reach-2
+	$(AM) eval reach --seed 1 --adaptor-scale 2.5 --adaptors seed0=runs/adapt-reach-0/adaptor seed1=runs/adapt-reach-1/adaptor seed2=runs/adapt-reach-2/adaptor --keep-best runs/adapt-reach/adaptor
 	$(AM) ship runs/adapt-reach/adaptor models/primal-bandai-reach --scale 2.5
 	$(AM) train --config configs/persona.json
 	$(AM) train --config configs/persona-2.json

@@ -187,6 +187,57 @@ def test_adapt_command_trains_and_saves(tmp_path, task):
         assert 0 < sum(float(p.detach().norm()) for p in ad.zero.parameters()) < norms[0.0]
 
 
+def test_the_best_reaching_run_is_the_nearest_that_skates_within_the_bound():
+    from avatar_motor.eval.adaptation import best_reaching
+    rows = [{"method": "base", "min_dist_m": 1.1, "ASR": 0.0}, {"method": "s0", "min_dist_m": 0.030, "ASR": 0.090},
+            {"method": "s1", "min_dist_m": 0.040, "ASR": 0.050}, {"method": "s2", "min_dist_m": 0.035, "ASR": 0.060}]
+    assert best_reaching(rows) == (rows[3], True)  # s0 is nearer but skates beyond 0.070
+    assert best_reaching(rows, asr_bound=0.1) == (rows[1], True)
+    assert best_reaching(rows, asr_bound=0.01) == (rows[1], False)  # none within: the nearest, said so
+    with pytest.raises(ValueError, match="besides the base"):
+        best_reaching(rows[:1])
+
+
+def test_eval_reach_keeps_the_run_nearest_its_targets(tmp_path):
+    """make models trains the reaching recipe with three seeds and ships the one `eval reach
+    --keep-best` chooses (on other initial states than its figures): the copy loads as the chosen
+    run, records the choice, ships with it, and the command refuses to write over a candidate."""
+    import shutil
+    from avatar_motor.cli import main
+    from avatar_motor.data.cache import import_motion, is_held_out
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from .conftest_models import tiny_motor
+    from .fixture_tools import FIXTURES
+    tiny_motor(tmp_path)
+    src = tmp_path / "clips"
+    src.mkdir()
+    held = next(f"dataset-9_walk_normal_{k:03d}.bvh" for k in range(1000) if is_held_out(f"dataset-9_walk_normal_{k:03d}.bvh"))
+    for name, file in (("walk_lafan1", "dataset-9_walk_normal_001.bvh"), ("walk_cmu", held)):
+        shutil.copy(FIXTURES / f"{name}.bvh", src / file)
+    import_motion(src, name="clips", progress=False, workers=1)
+    ads = []
+    for seed in (0, 1):
+        out = tmp_path / f"reach-{seed}"
+        assert main(["adapt", "--set", "task=reach", "--set", f"base={tmp_path / 'tiny'}", "--set", 'data=["clips"]',
+                     "--set", "steps=2", "--set", "batch=4", "--set", "split=all", "--set", f"seed={seed}",
+                     "--set", f"out={out}"]) == 0
+        ads.append(f"s{seed}={out / 'adaptor'}")
+    kept = tmp_path / "kept"
+    args = ["eval", "reach", "--model", str(tmp_path / "tiny"), "--data", "clips", "--n", "1", "--seconds", "0.5",
+            "--seed", "1", "--adaptors", *ads, "--keep-best"]
+    assert main(args + [str(kept)]) == 0
+    meta = json.loads((kept / "adaptor.json").read_text())
+    sel = meta["selection"]
+    assert set(sel["candidates"]) == {"s0", "s1"} and sel["seed"] == 1 and sel["asr_bound"] == 0.070
+    chosen = tmp_path / f"reach-{sel['chosen'][1]}" / "adaptor"
+    assert (kept / "adaptor.safetensors").read_bytes() == (chosen / "adaptor.safetensors").read_bytes()
+    net = load_checkpoint(tmp_path / "tiny").net
+    load_adaptor(kept, net)
+    assert main(["ship", str(kept), str(tmp_path / "shipped"), "--base", str(tmp_path / "tiny")]) == 0
+    assert json.loads((tmp_path / "shipped" / "adaptor.json").read_text())["selection"] == sel
+    assert main(args + [ads[0].partition("=")[2]]) == 2  # a candidate is never overwritten
+
+
 def test_cosine_schedule_runs_on_steps_or_on_wall_time():
     from avatar_motor.train.adapt import AdaptConfig, _progress
     assert _progress(50, AdaptConfig(steps=100), seconds=1e6) == 0.5  # no time limit: steps count

@@ -694,6 +694,32 @@ def _stub_card(name: str, what: str) -> str:
             "no figures were recorded yet.\n")
 
 
+def _keep_best_reaching(rows: list[dict], folders: dict[str, str], a) -> None:
+    """eval reach --keep-best OUT: copy the adaptor nearest its targets (within the skating bound)
+    to OUT, the choice and every candidate's figures recorded in its adaptor.json (and shipped)."""
+    import shutil
+    from .eval.adaptation import REACH_ASR_BOUND, best_reaching
+    from .io.atomic import replace_folder
+    from .model.adaptor import _adaptor_complete
+
+    best, within = best_reaching(rows)
+    src = Path(folders[best["method"]])
+    if Path(a.keep_best).resolve() in {Path(f).resolve() for f in folders.values()}:
+        raise ValueError(f"--keep-best {a.keep_best} is one of the adaptors compared: give another folder")
+    meta = json.loads((src / "adaptor.json").read_text())
+    meta["selection"] = {"by": "eval reach", "seed": a.seed, "n": a.n, "seconds": a.seconds or 2.0,
+                         "asr_bound": REACH_ASR_BOUND, "chosen": best["method"], "source": str(src),
+                         "candidates": {r["method"]: {"min_dist_m": round(r["min_dist_m"], 4), "ASR": round(r["ASR"], 4)}
+                                        for r in rows if r["method"] != "base"}}
+
+    def fill(tmp: Path) -> None:
+        shutil.copy(src / "adaptor.safetensors", tmp / "adaptor.safetensors")
+        (tmp / "adaptor.json").write_text(json.dumps(meta, indent=1))
+    replace_folder(a.keep_best, fill, _adaptor_complete)
+    note = "" if within else f" (no candidate skated within ASR {REACH_ASR_BOUND:g}: the nearest of all)"
+    print(f"kept {best['method']} ({src}): {best['min_dist_m']:.3f} m, ASR {best['ASR']:.3f}{note} -> {a.keep_best}")
+
+
 def _named_adaptors(specs: list[str], motor, guidance: str):
     """NAME=DIR items -> {name: AdaptedDenoiser}; the name 'base' (no dir) is the base model."""
     from .model.adaptor import load_adaptor
@@ -836,6 +862,8 @@ def _eval_adaptation(a) -> int:
         if a.png:
             target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
             print(f"pelvis paths: {a.png}")
+        if a.keep_best:
+            _keep_best_reaching(rows, dict(s.partition("=")[::2] for s in a.adaptors), a)
         return 0
     from .data.dataset import SegmentConfig, SegmentDataset
     classes = sorted({tuple(ad.cfg.labels) for ad in ads.values()})
@@ -1057,6 +1085,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="actions: how many evaluators (seeds --seed, --seed + 1, ...) read the rollouts; "
                             "R-precision is their mean, with min and max")
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
+        if name == "reach":
+            e.add_argument("--keep-best", metavar="FOLDER",
+                           help="copy the adaptor nearest its targets (ASR within 0.070) here, the choice recorded "
+                                "in its adaptor.json: choosing between training seeds (make models does, on --seed 1)")
         e.add_argument("--adaptor-scale", "--label-scale", type=float,
                        help="adaptor strength: 0 = base model, 1 = as trained, above 1 the guidance weight (see --guidance); "
                             "default: each adaptor's own (its card's)")
