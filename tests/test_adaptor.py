@@ -194,11 +194,14 @@ def test_the_best_reaching_run_is_the_nearest_that_skates_within_the_bound():
     assert best_reaching(rows) == (rows[3], True)  # s0 is nearer but skates beyond 0.070
     assert best_reaching(rows, asr_bound=0.1) == (rows[1], True)
     assert best_reaching(rows, asr_bound=0.01) == (rows[1], False)  # none within: the nearest, said so
+    assert best_reaching(rows, asr_bound=0.060) == (rows[3], True)  # the bound itself is within
+    broken = [{"method": "nan", "min_dist_m": float("nan"), "ASR": 0.0}] + rows
+    assert best_reaching(broken) == (rows[3], True)  # a run that diverged is never chosen
     with pytest.raises(ValueError, match="besides the base"):
         best_reaching(rows[:1])
 
 
-def test_eval_reach_keeps_the_run_nearest_its_targets(tmp_path):
+def test_eval_reach_keeps_the_run_nearest_its_targets(tmp_path, capsys):
     """make models trains the reaching recipe with three seeds and ships the one `eval reach
     --keep-best` chooses (on other initial states than its figures): the copy loads as the chosen
     run, records the choice, ships with it, and the command refuses to write over a candidate."""
@@ -224,18 +227,34 @@ def test_eval_reach_keeps_the_run_nearest_its_targets(tmp_path):
         ads.append(f"s{seed}={out / 'adaptor'}")
     kept = tmp_path / "kept"
     args = ["eval", "reach", "--model", str(tmp_path / "tiny"), "--data", "clips", "--n", "1", "--seconds", "0.5",
-            "--seed", "1", "--adaptors", *ads, "--keep-best"]
+            "--seed", "1", "--adaptor-scale", "2.5", "--adaptors", *ads, "--keep-best"]
     assert main(args + [str(kept)]) == 0
     meta = json.loads((kept / "adaptor.json").read_text())
     sel = meta["selection"]
     assert set(sel["candidates"]) == {"s0", "s1"} and sel["seed"] == 1 and sel["asr_bound"] == 0.070
+    from avatar_motor.eval.adaptation import best_reaching
+    recorded = [{"method": k, **v} for k, v in sel["candidates"].items()]
+    assert best_reaching(recorded)[0]["method"] == sel["chosen"] and sel["within_bound"] == best_reaching(recorded)[1]
+    assert sel["adaptor_scale"] == 2.5 and meta["scale"] == 2.5  # its avatars get the scale it was chosen at
     chosen = tmp_path / f"reach-{sel['chosen'][1]}" / "adaptor"
     assert (kept / "adaptor.safetensors").read_bytes() == (chosen / "adaptor.safetensors").read_bytes()
     net = load_checkpoint(tmp_path / "tiny").net
     load_adaptor(kept, net)
     assert main(["ship", str(kept), str(tmp_path / "shipped"), "--base", str(tmp_path / "tiny")]) == 0
     assert json.loads((tmp_path / "shipped" / "adaptor.json").read_text())["selection"] == sel
-    assert main(args + [ads[0].partition("=")[2]]) == 2  # a candidate is never overwritten
+    # a candidate, or a folder holding one, is never replaced (refused before any rollout)
+    before = (tmp_path / "reach-0" / "adaptor" / "adaptor.safetensors").read_bytes()
+    def refused(argv) -> str:
+        capsys.readouterr()
+        assert main(argv) == 2
+        return capsys.readouterr().err
+    for out in (tmp_path / "reach-0" / "adaptor", tmp_path / "reach-0", tmp_path):
+        err = refused(args + [str(out)])
+        assert "would replace the adaptor s0" in err and "reaching (Table A4)" not in err
+    assert (tmp_path / "reach-0" / "adaptor" / "adaptor.safetensors").read_bytes() == before
+    assert "'base' names the unadapted model's row" in refused(
+        args[:-2] + [f"base={tmp_path / 'reach-0' / 'adaptor'}", "--keep-best", str(tmp_path / "k2")])
+    assert "'s0' is given twice" in refused(args[:-1] + [ads[0], "--keep-best", str(tmp_path / "k2")])
 
 
 def test_cosine_schedule_runs_on_steps_or_on_wall_time():

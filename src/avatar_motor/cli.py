@@ -694,6 +694,16 @@ def _stub_card(name: str, what: str) -> str:
             "no figures were recorded yet.\n")
 
 
+def _check_keep_best(out: str, folders: dict[str, str]) -> None:
+    """Before any rollout: replacing `out` must not delete one of the adaptors compared."""
+    dst = Path(out).resolve()
+    for name, f in folders.items():
+        src = Path(f).resolve()
+        if dst == src or dst in src.parents:
+            raise ValueError(f"--keep-best {out} would replace the adaptor {name} ({f}) or the folder that holds it: "
+                             "give a folder of its own, e.g. runs/adapt-reach/adaptor")
+
+
 def _keep_best_reaching(rows: list[dict], folders: dict[str, str], a) -> None:
     """eval reach --keep-best OUT: copy the adaptor nearest its targets (within the skating bound)
     to OUT, the choice and every candidate's figures recorded in its adaptor.json (and shipped)."""
@@ -704,12 +714,13 @@ def _keep_best_reaching(rows: list[dict], folders: dict[str, str], a) -> None:
 
     best, within = best_reaching(rows)
     src = Path(folders[best["method"]])
-    if Path(a.keep_best).resolve() in {Path(f).resolve() for f in folders.values()}:
-        raise ValueError(f"--keep-best {a.keep_best} is one of the adaptors compared: give another folder")
     meta = json.loads((src / "adaptor.json").read_text())
+    if a.adaptor_scale is not None:  # the kept adaptor's avatars get the scale it was chosen at
+        meta["scale"] = float(a.adaptor_scale)
     meta["selection"] = {"by": "eval reach", "seed": a.seed, "n": a.n, "seconds": a.seconds or 2.0,
-                         "asr_bound": REACH_ASR_BOUND, "chosen": best["method"], "source": str(src),
-                         "candidates": {r["method"]: {"min_dist_m": round(r["min_dist_m"], 4), "ASR": round(r["ASR"], 4)}
+                         "adaptor_scale": a.adaptor_scale, "asr_bound": REACH_ASR_BOUND, "within_bound": within,
+                         "chosen": best["method"], "source": str(src),
+                         "candidates": {r["method"]: {"min_dist_m": r["min_dist_m"], "ASR": r["ASR"]}
                                         for r in rows if r["method"] != "base"}}
 
     def fill(tmp: Path) -> None:
@@ -720,15 +731,26 @@ def _keep_best_reaching(rows: list[dict], folders: dict[str, str], a) -> None:
     print(f"kept {best['method']} ({src}): {best['min_dist_m']:.3f} m, ASR {best['ASR']:.3f}{note} -> {a.keep_best}")
 
 
-def _named_adaptors(specs: list[str], motor, guidance: str):
-    """NAME=DIR items -> {name: AdaptedDenoiser}; the name 'base' (no dir) is the base model."""
-    from .model.adaptor import load_adaptor
-
+def _adaptor_folders(specs: list[str]) -> dict[str, str]:
+    """NAME=DIR items -> {name: dir}; 'base' is the reference row every table has, so no adaptor's name."""
     out = {}
     for spec in specs:
         name, _, path = spec.partition("=")
-        if not path:
+        if not name or not path:
             raise ValueError(f"--adaptors {spec!r}: write NAME=FOLDER, e.g. ours=runs/adapt/adaptor")
+        if name == "base" or name in out:
+            raise ValueError(f"--adaptors {spec!r}: " + ("'base' names the unadapted model's row" if name == "base" else
+                             f"{name!r} is given twice") + ": give each adaptor a name of its own")
+        out[name] = path
+    return out
+
+
+def _named_adaptors(specs: list[str], motor, guidance: str):
+    """NAME=DIR items -> {name: AdaptedDenoiser} (_adaptor_folders)."""
+    from .model.adaptor import load_adaptor
+
+    out = {}
+    for name, path in _adaptor_folders(specs).items():
         out[name] = load_adaptor(path, motor.net, motor.name)
         out[name].guidance = guidance
     return out
@@ -844,6 +866,9 @@ def _eval_adaptation(a) -> int:
     import torch
 
     motor = load_checkpoint(a.model)
+    folders = _adaptor_folders(a.adaptors)
+    if getattr(a, "keep_best", None):
+        _check_keep_best(a.keep_best, folders)
     ads = _named_adaptors(a.adaptors, motor, a.guidance)
     methods = {"base": None, **ads}  # the unadapted model as the reference row
     caches = _caches(a.data)
@@ -863,7 +888,7 @@ def _eval_adaptation(a) -> int:
             target_paths({k: v.numpy() for k, v in paths.items()}, TARGETS, a.png)
             print(f"pelvis paths: {a.png}")
         if a.keep_best:
-            _keep_best_reaching(rows, dict(s.partition("=")[::2] for s in a.adaptors), a)
+            _keep_best_reaching(rows, folders, a)
         return 0
     from .data.dataset import SegmentConfig, SegmentDataset
     classes = sorted({tuple(ad.cfg.labels) for ad in ads.values()})
@@ -1087,8 +1112,9 @@ def build_parser() -> argparse.ArgumentParser:
         e.add_argument("--png", help="actions: 5 rollouts per label of the first adaptor; reach: top-down pelvis paths")
         if name == "reach":
             e.add_argument("--keep-best", metavar="FOLDER",
-                           help="copy the adaptor nearest its targets (ASR within 0.070) here, the choice recorded "
-                                "in its adaptor.json: choosing between training seeds (make models does, on --seed 1)")
+                           help="copy the adaptor nearest its targets (among those within ASR 0.070; if none is, the "
+                                "nearest of all, said so) here, the choice and the scale recorded in its adaptor.json: "
+                                "choosing between training seeds (make models does, on --seed 1)")
         e.add_argument("--adaptor-scale", "--label-scale", type=float,
                        help="adaptor strength: 0 = base model, 1 = as trained, above 1 the guidance weight (see --guidance); "
                             "default: each adaptor's own (its card's)")
