@@ -302,6 +302,32 @@ def test_text_guidance_strengthens_the_text_and_leaves_the_rest(tmp_path):
     assert float((one[1] - two[1]).abs().max()) > 0.01
 
 
+def test_trajectory_guidance_strengthens_the_path_of_steered_avatars_only(tmp_path):
+    """trajectory_scale guides against the same conditions without the trajectory: an avatar with
+    no goal has none and comes out as without guidance; with text guidance too, each guidance
+    is its own term (c + sum (w_k - 1)(c - u_k)), so a text scale of 1 adds nothing to it."""
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    motor = _persona_motor(tmp_path)
+
+    def run(**kw):
+        crowd = Crowd(motor, RuntimeConfig(steps=2, bfloat16_from=0, **kw), seed=3)  # one precision whatever the rows
+        ids = [crowd.spawn(position=(2.0 * k, 0.0)) for k in range(3)]
+        crowd.set_persona(ids[2], "a weary old man")
+        crowd.set_goal(ids[1], (0.0, 1.2))
+        crowd.set_goal(ids[2], (1.0, 0.0))
+        seg = crowd.step_segment()
+        return [seg[i] for i in ids]
+    one, guided = run(), run(trajectory_scale=3.0)
+    assert torch.allclose(one[0], guided[0], atol=1e-4, rtol=1e-4)  # no goal: no trajectory to guide
+    assert float((one[1] - guided[1]).abs().max()) > 0.01
+    both = run(trajectory_scale=3.0, persona_scale=2.0)
+    assert torch.allclose(both[1], guided[1], atol=1e-4, rtol=1e-4)  # no text: the text term is nothing
+    assert float((both[2] - guided[2]).abs().max()) > 0.01
+    assert float((run(trajectory_halflife=0.25)[1] - one[1]).abs().max()) > 0.01  # the path asked for changed
+    with pytest.raises(ValueError, match="half-life"):
+        run(trajectory_halflife=0.0)
+
+
 def test_characterization_continues_the_clip_from_feet_matched_states(tmp_path):
     """swap_partners: each clip window's partners are the other motion's windows whose initial
     ankles and feet are nearest (the rest of the state does not count); prior_windows gives a

@@ -81,6 +81,14 @@ class RuntimeConfig:
     # text): 1 = as trained; above 1 the persona reads stronger, at one more batched pass for the
     # avatars that have one
     persona_scale: float = 1.0
+    # a persona model's trajectory condition for a steered avatar (guidance.goal_trajectory): the
+    # path the root is asked to take reaches the goal's velocity with this half-life (s), and is
+    # followed with classifier-free guidance against the same conditions without it (1 = as
+    # trained, one more batched pass above 1). Asked for the controller's slow 0.25-s start, a
+    # standing body given a goal often kept standing; at once, the path is kept better. Guidance
+    # keeps it better still but the character reads less while steered (persona card)
+    trajectory_halflife: float = 0.01
+    trajectory_scale: float = 1.0
     # post-processing stages by name, in order (runtime/stages.py); a body stage (leg_ik or fk)
     # always ends the list, so every frame that leaves the runtime is one body
     stages: tuple[str, ...] = DEFAULT_STAGES

@@ -78,9 +78,10 @@ def facing_loss_and_grad(x: torch.Tensor, r_goal: torch.Tensor) -> tuple[torch.T
     return loss, grad
 
 
-# how fast a steered trajectory turns from the body's motion to the goal's (a critically damped
-# approach, as motion-matching controllers predict the stick's path): half the difference is
-# gone after this many seconds
+# how fast a stick's path turns from the body's motion to the goal's (a critically damped
+# approach, as motion-matching controllers predict it): half the difference is gone after this
+# many seconds. It is the commanded path `eval persona` measures TPE from; the persona model is
+# asked for a quicker one (RuntimeConfig.trajectory_halflife)
 TRAJECTORY_HALFLIFE = 0.25
 
 
@@ -92,6 +93,8 @@ def goal_trajectory(x0: torch.Tensor, v_goal: torch.Tensor, f_goal: torch.Tensor
     exponentially with `halflife`. Columns: x, z, sin yaw, cos yaw (model/persona.trajectory_of)."""
     from ..body.motion_state import FPS
     from ..model.persona import trajectory_of
+    if not halflife > 0:
+        raise ValueError(f"the trajectory's half-life must be above 0 s, got {halflife!r} (runtime trajectory_halflife)")
     B = len(x0)
     lam = 0.6931471805599453 / halflife
     t = torch.arange(1, frames + 1, dtype=x0.dtype) / FPS  # (F,)

@@ -14,7 +14,7 @@ import torch
 from ..body import rotations as rot
 from ..body.motion_state import SLICES, STATE_DIM, Transform
 from ..model.checkpoint import Motor
-from ..model.persona import TEXT_DIM, TRAJ_FEATURES, PersonaCond
+from ..model.persona import CONDITIONS, TEXT_DIM, TRAJ_FEATURES, PersonaCond
 from .guidance import facing_loss_and_grad, facing_of, goal_trajectory, move_loss_and_grad, path_loss_and_grad
 from ..model import fewstep
 from ..model.bf16 import bf16_denoiser
@@ -208,17 +208,22 @@ class Sampler:
         if ad is None:
             if self.motor.net.cfg.persona:
                 persona = self._persona(batch, tf, x0c)
-                w = self.cfg.persona_scale
-                if w == 1.0 or not bool(persona.present[:, 0].any()):
+                # classifier-free guidance on the text and on the trajectory, each against the same
+                # conditions without it: c + sum_k (w_k - 1) (c - u_k), all passes in one batch; a row
+                # without that condition has u_k = c and comes out unchanged
+                scales = [(w, k) for w, k in ((self.cfg.persona_scale, 0), (self.cfg.trajectory_scale, 2))
+                          if w != 1.0 and bool(persona.present[:, k].any())]
+                if not scales:
                     return lambda x_t, t, z=None: net(t, x_t, cond, z, persona)
-                # text guidance: both passes in one batch; rows without a text come out unchanged
-                both = PersonaCond.cat([persona, persona.without("text")])
-                cond2 = torch.cat((cond, cond))
+                n = 1 + len(scales)
+                every = PersonaCond.cat([persona] + [persona.without(CONDITIONS[k]) for _, k in scales])
+                cond_n = torch.cat([cond] * n)
 
                 def guided(x_t, t, z=None):
-                    z2 = None if z is None else torch.cat((z, z))
-                    c, u = net(torch.cat((t, t)), torch.cat((x_t, x_t)), cond2, z2, both).chunk(2)
-                    return u + w * (c - u)
+                    z_n = None if z is None else torch.cat([z] * n)
+                    out = net(torch.cat([t] * n), torch.cat([x_t] * n), cond_n, z_n, every).chunk(n)
+                    c = out[0]
+                    return c + sum((w - 1.0) * (c - u) for (w, _), u in zip(scales, out[1:]))
                 return guided
             if self.motor.net.cfg.latent:
                 return lambda x_t, t, z=None: net(t, x_t, cond, z)
@@ -247,7 +252,8 @@ class Sampler:
         traj = torch.zeros(B, N, TRAJ_FEATURES)
         if bool(has_goal.any()):
             Rt = tf.R.transpose(-1, -2)
-            traj = goal_trajectory(x0c.double(), _local_goals(batch.v_goal, Rt), _local_goals(batch.facing_goal, Rt), N).float()
+            traj = goal_trajectory(x0c.double(), _local_goals(batch.v_goal, Rt), _local_goals(batch.facing_goal, Rt), N,
+                                   self.cfg.trajectory_halflife).float()
         present = torch.stack((has_text, torch.ones(B, dtype=torch.bool), has_goal), 1)
         return PersonaCond(text, batch.shapes.float(), traj, present)
 
