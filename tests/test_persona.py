@@ -324,8 +324,10 @@ def test_trajectory_guidance_strengthens_the_path_of_steered_avatars_only(tmp_pa
     assert torch.allclose(both[1], guided[1], atol=1e-4, rtol=1e-4)  # no text: the text term is nothing
     assert float((both[2] - guided[2]).abs().max()) > 0.01
     assert float((run(trajectory_halflife=0.25)[1] - one[1]).abs().max()) > 0.01  # the path asked for changed
-    with pytest.raises(ValueError, match="half-life"):
-        run(trajectory_halflife=0.0)
+    with pytest.raises(ValueError, match="trajectory_halflife"):  # at once, not at the first steered segment
+        Crowd(motor, RuntimeConfig(trajectory_halflife=0.0))
+    with pytest.raises(ValueError, match="trajectory_scale"):
+        Crowd(motor, RuntimeConfig(trajectory_scale=float("nan")))
 
 
 def test_characterization_continues_the_clip_from_feet_matched_states(tmp_path):

@@ -284,6 +284,10 @@ class Crowd:
         self.environment: Environment = FLAT  # the ground and obstacles of physics mode (set_ground, add_obstacle)
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
+        for name in ("persona_scale", "trajectory_scale", "trajectory_halflife"):  # likewise: not mid-serve
+            v = getattr(self.cfg, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and (v > 0 if name == "trajectory_halflife" else v >= 0)):
+                raise ValueError(f"runtime {name} must be a finite number {'above' if name == 'trajectory_halflife' else 'at least'} 0, got {v!r}")
         self.sampler = Sampler(motor, self.cfg, adaptors)
         self.cfg = self.sampler.cfg  # its steps resolved for this model
         self.seed = seed
