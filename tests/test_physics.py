@@ -67,6 +67,34 @@ def test_projections():
     assert k.tolist() == [1, 1] and torch.equal(near, cands[:, 1])
 
 
+def test_ground_contact_of_a_compliant_body_obeys_coulomb():
+    """A sunk joint is held where it was while its slip along the ground is within friction times
+    its depth (the cone); beyond, it keeps the slip past that; calm bodies and friction=None hold."""
+    x, _, _, off = _standing(3)
+    f = JOINT_INDEX["left_foot"]
+    prev = x.clone()
+    moved = x.clone()
+    depth = 0.01  # under its resting height
+    moved[:, f, 1] = REST_HEIGHT[f] - depth
+    moved[0, f, 0] += 0.005  # within 0.8 x 1 cm: sticks
+    moved[1, f, 0] += 0.03  # beyond: slides, 3 - 0.8 cm kept
+    moved[2, f, 0] += 0.03  # the same slip, a calm body: held
+    mu = torch.tensor([0.8, 0.8, float("inf")], dtype=torch.float64)
+    p = project_ground(moved, prev, friction=mu)
+    assert torch.allclose(p[:, f, 1], REST_HEIGHT[f].expand(3).double())
+    assert abs(float(p[0, f, 0] - prev[0, f, 0])) < 1e-12
+    assert abs(float(p[1, f, 0] - prev[1, f, 0]) - (0.03 - 0.8 * depth)) < 1e-12
+    assert abs(float(p[2, f, 0] - prev[2, f, 0])) < 1e-12
+    assert torch.equal(project_ground(moved, prev)[:, f], project_ground(moved, prev, friction=torch.full((3,), float("inf"), dtype=torch.float64))[:, f])
+    above = moved[..., 1] > REST_HEIGHT + 1e-9
+    assert torch.equal(p[above], moved[above])  # above the ground: no energy, whatever the friction
+    # the pull back along the ground is at most friction times the push up, on the contact's force
+    pulled, pushed = (prev[1, f] - moved[1, f])[[0, 2]], float(p[1, f, 1] - moved[1, f, 1])
+    assert float((p[1, f] - moved[1, f])[[0, 2]].norm()) <= 0.8 * pushed + 1e-12 < float(pulled.norm())
+    b = prepare(off, PhysicsConfig(friction=0.6), torch.tensor([False, True, False]))
+    assert b.friction.tolist() == [0.6, float("inf"), 0.6]
+
+
 def test_factored_solve_equals_a_dense_66_by_66_solve():
     torch.manual_seed(0)
     x, _, _, off = _standing(3)
@@ -459,7 +487,9 @@ def test_the_prior_s_pull_carries_over_a_join_and_decays():
     from avatar_motor.body.motion_state import joints_of
     from avatar_motor.physics.simulate import segment
     state, cands, off = _segment_inputs()
-    b = prepare(off)
+    # the feet held by static friction, so that only the carried pull can move them (with Coulomb's
+    # the body it pulls drags a lightly loaded foot along: the friction test's business)
+    b = prepare(off, PhysicsConfig(friction=1e9))
     ahead = cands.clone()
     ahead[..., -132:-66] += torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64).repeat(22)  # 10 cm ahead of the body
     _, _, _, _, pulls = segment(b, state, ahead)

@@ -2,7 +2,7 @@
 a foot): the ground, a plane that may be tilted about a pivot, and static boxes standing on the
 flat floor (y = 0). Both act through the solver's contact energy: a joint's collision sphere that
 enters one is projected back to its surface with static friction (it stays where it was when it
-touched). No new weight, no change to the system matrix (solver.py): the contact projection is
+touched; on the ground, a compliant body's joint slips past Coulomb's limit). No new weight, no change to the system matrix (solver.py): the contact projection is
 only a different set.
 
 A foot that meets a box's side is held at the point where it touched until the motion model's
@@ -138,15 +138,30 @@ class Environment:
 FLAT = Environment()
 
 
-def project_ground(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, ground: Ground) -> torch.Tensor:
+def project_ground(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, ground: Ground,
+                   friction: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 22, 3): a joint of x whose centre is less than its resting height rest ((22,) or (B, 22)) above the
     plane moved onto that height at the place it had in x_prev along the plane (static friction);
-    any other joint is itself."""
+    any other joint is itself. friction (B,): each body's Coulomb coefficient (None or inf: the
+    joint is held whatever the slip): a joint whose slip along the plane since x_prev is more
+    than friction times its depth under its resting height keeps the slip beyond that (kinetic
+    friction, the position-level Coulomb law of position-based dynamics): the contact energy
+    pulls it back along the plane at most friction times as hard as it pushes it up."""
     n = ground.normal(x.dtype)
     h = ground.height(x)
-    lift = rest.to(x.dtype) - ground.height(x_prev)  # x_prev moved along n onto the resting height
+    r = rest.to(x.dtype)
+    lift = r - ground.height(x_prev)  # x_prev moved along n onto the resting height
     p = x_prev + lift[..., None] * n
-    return torch.where((h < rest.to(x.dtype))[..., None], p, x)
+    if friction is not None and bool(torch.isfinite(friction).any()):
+        slip = x - p
+        slip = slip - (slip * n).sum(-1, keepdim=True) * n  # along the plane
+        length = slip.norm(dim=-1)
+        depth = (r - h).clamp(min=0.0)
+        mu = friction.to(x.dtype)[:, None].expand_as(length)
+        held = ~torch.isfinite(mu) | (length <= mu * depth)
+        kept = torch.where(held, torch.zeros_like(length), 1.0 - mu.clamp(max=1e30) * depth / length.clamp_min(1e-12))
+        p = p + kept[..., None] * slip
+    return torch.where((h < r)[..., None], p, x)
 
 
 def project_box(x: torch.Tensor, x_prev: torch.Tensor, radius: torch.Tensor, box: Box) -> torch.Tensor:
@@ -166,9 +181,10 @@ def project_box(x: torch.Tensor, x_prev: torch.Tensor, radius: torch.Tensor, box
 
 
 def project_contact(x: torch.Tensor, x_prev: torch.Tensor, rest: torch.Tensor, radius: torch.Tensor,
-                    env: Environment) -> torch.Tensor:
-    """The contact energy's projection: the ground, then each box in turn."""
-    p = project_ground(x, x_prev, rest, env.ground)
+                    env: Environment, friction: torch.Tensor | None = None) -> torch.Tensor:
+    """The contact energy's projection: the ground (with each body's Coulomb coefficient friction
+    (B,), None: static), then each box in turn (static)."""
+    p = project_ground(x, x_prev, rest, env.ground, friction)
     for box in env.boxes:
         p = project_box(p, x_prev, radius, box)
     return p

@@ -10,7 +10,9 @@ quadratic in x is solved with every p_i fixed. The energies here:
 - rigidity: every bone's vector x_j - x_parent pulled to its rest length along its current
   direction (the fast mass-spring form of DROP Eq. 5);
 - ground contact: a joint below the height at which it rests on the ground is projected up to
-  it, at its horizontal place of the frame before (static friction, DROP Eq. 6);
+  it, at its horizontal place of the frame before (static friction, DROP Eq. 6), or, for a
+  compliant body, no further back along the ground than Coulomb's law allows (the slip beyond
+  `friction` times the depth is kept: its pull along the ground at most `friction` times its push up);
 - range of motion: the pose of the frame the step starts from with each joint's rotation moved
   into the data's range (physics/limits.py), back through FK; that move, applied to each iterate,
   is its projection (E_RoM, lagged by one frame: see `step`);
@@ -134,6 +136,8 @@ class PhysicsConfig:
     ballistic: float = 1.0
     correction_step: float = 0.01  # m: the most a correction moves any joint in a frame
     ghost_threshold: float = 0.15
+    # the ground's Coulomb coefficient: a compliant body's contacts (a calm body's feet are held
+    # where the model plants them) and the friction pyramids of the root-wrench metric
     friction: float = 0.8
 
     def validate(self) -> None:
@@ -169,6 +173,7 @@ class Bodies:
     kinematic: torch.Tensor  # (B,) each body's kinematic weight (PhysicsConfig.kinematic or kinematic_calm)
     contact_height: torch.Tensor  # (B, 22) where the ground holds each joint (REST_HEIGHT or CALM_CONTACT_HEIGHT)
     calm: torch.Tensor  # (B,) bool: the body follows the model stiffly (prepare's calm)
+    friction: torch.Tensor  # (B,) the ground contact's Coulomb coefficient (inf: static, a calm body's)
 
 
 H = 1.0 / FPS  # the time step: one frame of the motion model
@@ -210,10 +215,14 @@ def prepare(offsets: torch.Tensor, cfg: PhysicsConfig | None = None, calm: torch
     G = _incidence(torch.float64)
     A = torch.diag_embed(_diagonal(masses, cfg, kinematic)) + G.T @ (_bone_weights(masses, cfg)[:, :, None] * G)
     height = REST_HEIGHT.expand(B, NUM_JOINTS).clone()
+    # a compliant body's feet slip when the ground cannot hold them (Coulomb, cfg.friction); a
+    # calm body's are held where the model plants them, as the kinematic runtime's are
+    friction = torch.full((B,), float(cfg.friction), dtype=torch.float64)
     if calm is not None:
         height[calm] = CALM_CONTACT_HEIGHT
+        friction[calm] = float("inf")
     return Bodies(offsets, masses, rest, torch.linalg.cholesky(A), A, kinematic, height,
-                  torch.zeros(B, dtype=torch.bool) if calm is None else calm.clone())
+                  torch.zeros(B, dtype=torch.bool) if calm is None else calm.clone(), friction)
 
 
 def project_bones(x: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
@@ -226,12 +235,13 @@ def project_bones(x: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
 
 
 def project_ground(x: torch.Tensor, x_prev: torch.Tensor, env: Environment = FLAT,
-                   height: torch.Tensor | None = None) -> torch.Tensor:
+                   height: torch.Tensor | None = None, friction: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 22, 3) the contact energy's projection: a joint of x below its contact height (height
     (B, 22) above the ground plane; None: REST_HEIGHT) moved onto it at its place in x_prev, the
-    frame before (static friction); a joint inside an obstacle moved out through the face it came
+    frame before, unless it slipped further than the Coulomb coefficient friction (B,) times its
+    depth allows (None: static friction; environment.project_ground); a joint inside an obstacle moved out through the face it came
     in by (physics/environment.py); any other joint is itself (no energy)."""
-    return environment.project_contact(x, x_prev, REST_HEIGHT if height is None else height, COLLISION_RADIUS, env)
+    return environment.project_contact(x, x_prev, REST_HEIGHT if height is None else height, COLLISION_RADIUS, env, friction)
 
 
 @dataclass
@@ -367,7 +377,7 @@ def energies(bodies: Bodies, x: torch.Tensor, y: torch.Tensor, it: torch.Tensor,
     d = it[:, BONES[:, 1]] - it[:, BONES[:, 0]] - project_bones(it, bodies.rest)
     out = {"momentum": term(1.0, y),
            "rigidity": 0.5 * (_bone_weights(bodies.masses, cfg)[..., None] * d ** 2).sum((-1, -2)),
-           "contact": term(cfg.contact, project_ground(it, x, env, bodies.contact_height)),
+           "contact": term(cfg.contact, project_ground(it, x, env, bodies.contact_height, bodies.friction)),
            "kinematic": term(bodies.kinematic, project_prior(it, cands.joints.to(it.dtype), bodies.masses)[0])}
     if shift is not None:  # the range of motion's move (range_shift), as the step applies it
         out["range_of_motion"] = term(cfg.range_of_motion, it + shift)
@@ -409,12 +419,12 @@ def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, fo
     for _ in range(cfg.iterations):
         kin, k = project_prior(it, cj, bodies.masses)
         ranged = it if shift is None else it + shift
-        it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, env, bodies.contact_height), ranged,
+        it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, env, bodies.contact_height, bodies.friction), ranged,
                           kin, cfg, com)
     if trace is not None:
         trace.append(energies(bodies, x, y, it, cands, cfg, shift, env, com))
     if cfg.contact > 0:  # the ground as a hard constraint at the end (as position-based dynamics
-        it = project_ground(it, x, env, bodies.contact_height)  # does): the energy alone left toes 7 cm under it
+        it = project_ground(it, x, env, bodies.contact_height, bodies.friction)  # does): the energy alone left toes 7 cm under it
     return it, (it - x) / H, k
 
 
