@@ -2,8 +2,8 @@
 a foot): the ground, a plane that may be tilted about a pivot, and static boxes standing on the
 flat floor (y = 0). Both act through the solver's contact energy: a joint's collision sphere that
 enters one is projected back to its surface with static friction (it stays where it was when it
-touched; on the ground, a compliant body's joint slips past Coulomb's limit). No new weight, no change to the system matrix (solver.py): the contact projection is
-only a different set.
+touched; on the ground, a compliant body's joint slips past Coulomb's limit). No new weight, no
+change to the system matrix (solver.py): the contact projection is only a different set.
 
 A foot that meets a box's side is held at the point where it touched until the motion model's
 pull lifts it above the top: so a box across the path trips a walking body the way DROP's fixed
