@@ -239,9 +239,11 @@ def project_ground(x: torch.Tensor, x_prev: torch.Tensor, env: Environment = FLA
     """(B, 22, 3) the contact energy's projection: a joint of x below its contact height (height
     (B, 22) above the ground plane; None: REST_HEIGHT) moved onto it at its place in x_prev, the
     frame before, unless it slipped further than the Coulomb coefficient friction (B,) times its
-    depth allows (None: static friction; environment.project_ground); a joint inside an obstacle moved out through the face it came
-    in by (physics/environment.py); any other joint is itself (no energy)."""
-    return environment.project_contact(x, x_prev, REST_HEIGHT if height is None else height, COLLISION_RADIUS, env, friction)
+    depth allows (None: static friction; environment.project_ground); a joint inside an obstacle
+    moved out through the face it came in by (physics/environment.py); any other joint is itself
+    (no energy)."""
+    height = REST_HEIGHT if height is None else height
+    return environment.project_contact(x, x_prev, height, COLLISION_RADIUS, env, friction)
 
 
 @dataclass
@@ -419,8 +421,8 @@ def step(bodies: Bodies, x: torch.Tensor, v: torch.Tensor, cands: Candidates, fo
     for _ in range(cfg.iterations):
         kin, k = project_prior(it, cj, bodies.masses)
         ranged = it if shift is None else it + shift
-        it = solve_global(bodies, y, project_bones(it, bodies.rest), project_ground(it, x, env, bodies.contact_height, bodies.friction), ranged,
-                          kin, cfg, com)
+        ground = project_ground(it, x, env, bodies.contact_height, bodies.friction)
+        it = solve_global(bodies, y, project_bones(it, bodies.rest), ground, ranged, kin, cfg, com)
     if trace is not None:
         trace.append(energies(bodies, x, y, it, cands, cfg, shift, env, com))
     if cfg.contact > 0:  # the ground as a hard constraint at the end (as position-based dynamics
