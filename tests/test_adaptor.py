@@ -312,6 +312,86 @@ def test_a_reaching_avatar_near_its_target_is_walked_onto_it_and_stopped(tmp_pat
     assert torch.allclose(crowd._velocity_goal(a), torch.tensor([0.0, 0.0, 1.0]))  # a user's velocity goal wins
 
 
+def test_nearest_candidate_picks_the_segment_ending_nearest_the_target():
+    from avatar_motor.runtime.processing import nearest_candidate
+    from avatar_motor.runtime.crowd import standing_state
+    x = standing_state().double()
+    cands = x.expand(2, 3, 15, 267).clone()  # 2 avatars x 3 candidates of 15 frames
+    ends = torch.tensor([[[0.0, 1.0], [0.4, 0.1], [2.0, 0.0]], [[3.0, 3.0], [0.9, 0.8], [1.0, 1.0]]])
+    pelvis = slice(135, 138)
+    for a in range(2):
+        for k in range(3):
+            cands[a, k, 7, pelvis][[0, 2]] = torch.tensor([0.5, 0.0], dtype=torch.float64)  # passing the target mid-way does not count
+            cands[a, k, -1, pelvis][[0, 2]] = ends[a, k].double()
+    targets = torch.tensor([[0.5, 0.0], [1.0, 1.0]])
+    assert nearest_candidate(cands, targets).tolist() == [1, 2]
+
+
+def test_a_reaching_avatar_shows_the_nearest_of_its_candidates(tmp_path):
+    """reach_candidates K: a reaching avatar's segment is the one of its K draws (processed as any
+    segment is) that ends nearest its target; an avatar without a target gets one draw, as with
+    K = 1, and a run is the same for the same seed."""
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    ad = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
+    torch.nn.init.normal_(ad.zero[0].weight, std=0.5)
+    target = torch.tensor([0.0, 1.5])
+    seen = []
+
+    def run(K, seed=2):
+        crowd = Crowd(motor, RuntimeConfig(reach_candidates=K), seed=seed, adaptors=ad)
+        choose = crowd._choose_nearest
+
+        def spy(batch, plain, counts, seg):
+            out = choose(batch, plain, counts, seg)
+            seen.append((counts, seg, out))
+            return out
+        crowd._choose_nearest = spy
+        i, j = crowd.spawn(), crowd.spawn(position=(2.0, 0.0))
+        crowd.set_target(i, target.tolist())
+        return crowd.step_segment(), i, j
+
+    one, i, j = run(1)
+    assert not seen  # one draw each: nothing to choose
+    four, _, _ = run(4)
+    (counts, seg, out), = seen
+    assert counts == [4, 1]  # avatar i (the first spawned) has the target
+    ends = (seg[:4, -1, 135:138][:, [0, 2]] - target.double()).norm(dim=-1)
+    assert torch.equal(out[0], seg[int(ends.argmin())])
+    assert torch.allclose(four[i], out[0].float())
+    assert len({round(float(e), 6) for e in ends}) == 4  # four different draws
+    assert torch.allclose(four[j], one[j], atol=1e-5)  # the avatar without a target: as before
+    again, _, _ = run(4)
+    assert torch.equal(again[i], four[i])
+
+
+def test_an_avatar_with_a_velocity_goal_shows_the_candidate_ending_where_the_goal_takes_it(tmp_path):
+    """goal_candidates K: the candidate whose pelvis ends nearest x0's pelvis moved along the goal's
+    path (its velocity approaching the goal with trajectory_halflife) over the segment."""
+    import math
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    crowd = Crowd(motor, RuntimeConfig(goal_candidates=3, trajectory_halflife=0.2), seed=4)
+    seen = []
+    choose = crowd._choose_nearest
+    crowd._choose_nearest = lambda *args: seen.append(args) or choose(*args)
+    i = crowd.spawn()
+    crowd.set_goal(i, (0.0, 1.2))
+    x0 = crowd.state(i).double()
+    shown = crowd.step_segment()[i]
+    (batch, plain, counts, seg), = seen
+    assert counts == [3]
+    T, lam = seg.shape[1] / 30.0, math.log(2) / 0.2
+    v0 = x0[201:267].view(22, 3)[0, [0, 2]]
+    vg = torch.tensor([0.0, 1.2], dtype=torch.float64)
+    wanted = x0[135:201].view(22, 3)[0, [0, 2]] + vg * T + (v0 - vg) / lam * (1 - math.exp(-lam * T))
+    ends = (seg[:, -1, 135:138][:, [0, 2]] - wanted).norm(dim=-1)
+    assert torch.allclose(shown, seg[int(ends.argmin())].float())
+    assert len({round(float(e), 6) for e in ends}) == 3
+
+
 def test_runtime_labels_and_targets(tmp_path):
     from avatar_motor.runtime.crowd import Crowd
     from .conftest_models import tiny_motor
@@ -564,7 +644,8 @@ def test_a_reaching_avatar_near_its_target_keeps_the_yaw_lock(tmp_path, monkeypa
     near, idle = crowd.spawn(position=(0.0, 0.0)), crowd.spawn(position=(3.0, 0.0))
     crowd.set_target(near, (0.1, 0.1))
     crowd.step_segment()
-    assert crowd._facing_goal(crowd.avatars[near]) is None and seen[-1] == [True, False]
+    # (each of the reaching avatar's candidate segments is processed alike)
+    assert crowd._facing_goal(crowd.avatars[near]) is None and seen[-1] == [True] * crowd.cfg.reach_candidates + [False]
 
 
 def test_an_avatar_with_an_action_label_gets_the_yaw_lock(tmp_path, monkeypatch):

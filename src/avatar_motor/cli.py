@@ -634,8 +634,11 @@ def _bench(a) -> int:
         from .eval.serve_bench import serve_bench
         print(serve_bench(a.model, serve_args=_serve_args(a)))
         return 0
-    print(bench(load_checkpoint(a.model), a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a),
-                baseline=load_checkpoint(a.baseline), range_of_motion=_range_of_motion()))
+    from .model.adaptor import default_adaptors
+    motor = load_checkpoint(a.model)
+    print(bench(motor, a.segments, max_avatars=a.max_avatars, runtime=_runtime_config(a),
+                baseline=load_checkpoint(a.baseline), range_of_motion=_range_of_motion(),
+                adaptors=default_adaptors(motor, MODELS)))
     return 0
 
 

@@ -226,12 +226,14 @@ def _backend_name(cfg: RuntimeConfig) -> str:
 
 
 def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 256,
-          runtime: RuntimeConfig | None = None, baseline: Motor | None = None, range_of_motion=None) -> str:
+          runtime: RuntimeConfig | None = None, baseline: Motor | None = None, range_of_motion=None,
+          adaptors=None) -> str:
     """runtime: the configuration measured as the default (its backend also runs the crowd and
     reaction rows); the same settings on the other backend are timed in the same run. baseline:
     the DDPM base (default: motor itself when it is one), timed at 50 steps and at 8 steps with
     guidance and processing, the runtime before few-step sampling; ratios are to the latter.
-    range_of_motion: physics mode's joint limits (timed with them)."""
+    range_of_motion: physics mode's joint limits (timed with them). adaptors: the shipped ones
+    (model/adaptor.default_adaptors); with a reaching one, crowds walking to targets are timed too."""
     default = runtime or RuntimeConfig()
     base = baseline if baseline is not None else motor
     if base.sampler["kind"] != "ddpm":
@@ -300,6 +302,24 @@ def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 25
             break
         n *= 2
     out.append(f"largest crowd kept in real time (>= 30 frames/s each): {best} avatars (tested powers of two)")
+    reaching = [ad for ad in adaptors or [] if ad.cfg.control == "target"]
+    if reaching:  # the magnet: each avatar draws reach_candidates segments, the adaptor guided against the base
+        out.append(f"reaching (the magnet, {reaching[0].name}; "
+                   f"{default.reach_candidates} candidate(s) per segment): avatars, ms per segment per batch, real-time factor")
+        best, n = 0, 1
+        while n <= max_avatars:
+            crowd = Crowd(motor, default, seed, adaptors=reaching)
+            ids = [crowd.spawn(position=(k, 0.0)) for k in range(n)]
+            for k, i in enumerate(ids):
+                crowd.set_target(i, (k + 3.0, 2.0))  # far enough that none arrives within the timed segments
+            crowd.warm()
+            crowd.step_segment()
+            t = sum(r["total"] for r in _timed(crowd, 3)) / 3
+            out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
+            if t > 0.5:
+                break
+            best, n = n, n * 2
+        out.append(f"largest reaching crowd kept in real time: {best} avatars (tested 1, 2, 4, ...)")
     # reaction latency: a command interrupts the queue; the next frame comes from a fresh segment
     crowd = Crowd(motor, default, seed)
     i = crowd.spawn()
