@@ -503,3 +503,24 @@ def test_persona_without_leaves_a_condition_out_of_every_training_window(tmp_pat
     assert not bool(c.present[:, 0].any()) and bool(c.present[:, 1:].all())  # no text; shape and path always
     with pytest.raises(ValueError, match="persona_without.*'gait'.*text"):
         Trainer(_cfg(tmp_path / "q", fixture_cache, model=PTINY, persona_without=["gait"]), progress=False)
+
+
+def test_a_learnt_identifier_moves_off_its_random_start_and_stays_a_unit_vector(tmp_path):
+    """identifier_lr > 0 (textual inversion): the name's vector is trained with the weights and
+    saved normalised; at 0 the saved vector is the fixed random one."""
+    import json
+    from avatar_motor.train import characterize as C
+    from .fixture_tools import FIXTURES
+    src = _persona_motor(tmp_path)
+    clip = str(FIXTURES / "walk_cmu.bvh")
+
+    def saved(lr, out):
+        cfg = C.CharacterizeConfig(model=str(src.path), clips=[clip], name="kid", out=str(tmp_path / out), steps=6,
+                                   batch=16, prior_avatars=2, prior_seconds=1.0, identifier_lr=lr)
+        C.characterize(cfg, progress=lambda *_: None)
+        return torch.tensor(json.loads((tmp_path / out / "config.json").read_text())["personas"]["kid"])
+    fixed, learnt = saved(0.0, "fixed"), saved(0.05, "learnt")
+    start = C.identifier("kid")
+    assert torch.allclose(fixed, start, atol=1e-6)
+    assert abs(float(learnt.norm()) - 1.0) < 1e-5
+    assert float(learnt @ start) < 0.999  # it moved
