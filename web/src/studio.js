@@ -691,6 +691,9 @@ const download = (fmt) => {
 $("bvh").onclick = () => download("bvh");
 $("glb").onclick = () => download("glb");
 $("human").onchange = (e) => { humans.enabled = e.target.checked; view.dirty = true; };
+// off: the view stays where the user put it (to frame a scene, or to click a fixed spot on the floor)
+state.follow = true;
+$("follow").onchange = (e) => { state.follow = e.target.checked; };
 $("events").onclick = async () => {
   const r = await fetch(`/api/events${token ? "?token=" + token : ""}`);
   const blob = new Blob([await r.text()], { type: "application/json" });
@@ -828,7 +831,7 @@ function animate(t) {
   const b = bodies.get(state.selected);
   if (b && b.positions) {  // follow the selected avatar, keeping the user's orbit offset
     const target = new THREE.Vector3(b.positions[0], 0.9, b.positions[2]);
-    const delta = target.clone().sub(orbit.target).multiplyScalar(1 - Math.exp(-dt / FOLLOW_TIME));
+    const delta = state.follow ? target.clone().sub(orbit.target).multiplyScalar(1 - Math.exp(-dt / FOLLOW_TIME)) : new THREE.Vector3();
     orbit.target.add(delta);
     camera.position.add(delta);
     sun.position.set(target.x + 4, 8, target.z + 3);

@@ -186,12 +186,15 @@ def format_impulses(rows, what, n, seconds, body: dict) -> str:
 
 
 # ---------------------------------------------------------------- bench
-def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, seed: int = 0) -> Crowd:
-    """A warmed crowd of `avatars` walking toward a goal (or free), as bench times it."""
-    crowd = Crowd(motor, cfg, seed)
+def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, seed: int = 0, reaching=None) -> Crowd:
+    """A warmed crowd of `avatars` walking toward a goal (or free), as bench times it; with
+    `reaching` (a reaching adaptor, in a list) each walks to a target instead (the magnet)."""
+    crowd = Crowd(motor, cfg, seed, adaptors=reaching)
     ids = [crowd.spawn(position=(k, 0.0)) for k in range(avatars)]
-    if goal:
-        for i in ids:
+    for k, i in enumerate(ids):
+        if reaching:
+            crowd.set_target(i, (k + 3.0, 2.0))  # far enough that none arrives within the timed segments
+        elif goal:
             crowd.set_goal(i, (1.0, 0.5))
     if motor.net.cfg.persona:  # a persona model is timed with a different character for each avatar
         from ..data.personas import DESCRIPTIONS
@@ -212,9 +215,10 @@ def _timed(crowd: Crowd, segments: int) -> list[dict]:
     return out
 
 
-def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int, goal: bool, seed: int = 0) -> dict:
-    """Mean timings of `segments` segments of a fresh crowd."""
-    runs = _timed(_timing_crowd(motor, cfg, avatars, goal, seed), segments)
+def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int, goal: bool, seed: int = 0,
+                   reaching=None) -> dict:
+    """Mean timings of `segments` segments of a fresh crowd (_timing_crowd)."""
+    runs = _timed(_timing_crowd(motor, cfg, avatars, goal, seed, reaching), segments)
     return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0]}
 
 
@@ -308,13 +312,7 @@ def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 25
                    f"{default.reach_candidates} candidate(s) per segment): avatars, ms per segment per batch, real-time factor")
         best, n = 0, 1
         while n <= max_avatars:
-            crowd = Crowd(motor, default, seed, adaptors=reaching)
-            ids = [crowd.spawn(position=(k, 0.0)) for k in range(n)]
-            for k, i in enumerate(ids):
-                crowd.set_target(i, (k + 3.0, 2.0))  # far enough that none arrives within the timed segments
-            crowd.warm()
-            crowd.step_segment()
-            t = sum(r["total"] for r in _timed(crowd, 3)) / 3
+            t = _time_segments(motor, default, n, 3, False, seed, reaching)["total"]
             out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
             if t > 0.5:
                 break

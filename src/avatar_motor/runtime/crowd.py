@@ -255,6 +255,11 @@ def standing_state(shape: torch.Tensor | None = None, position=(0.0, 0.0), yaw: 
     return pack(root, root_rot, local, J, torch.zeros_like(J)).float()
 
 
+def _reaching(batch: SegmentBatch, k: int) -> bool:
+    """Whether avatar k of the batch is reaching: a target, and an adaptor to follow it."""
+    return batch.targets[k] is not None and batch.adaptors[k] is not None
+
+
 def _raised(x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
     """States x (B, 267) or (B, N, 267) moved up by h (B,) m (the root and every joint)."""
     if not bool((h != 0).any()):
@@ -844,7 +849,7 @@ class Crowd:
         # an avatar in physics mode K candidates instead (a calm one: candidates_calm), all in one batch
         counts = self._candidate_counts(batch, phys)
         # and a reaching avatar reach_candidates of them (best-of-K: the one ending nearest is shown)
-        reach = [self.cfg.reach_candidates if batch.targets[k] is not None and batch.adaptors[k] is not None
+        reach = [self.cfg.reach_candidates if _reaching(batch, k)
                  else self.cfg.goal_candidates if batch.v_goal[k] is not None else 1 for k in plain]
         plain_rows = [k for k, c in zip(plain, reach) for _ in range(c)]
         rows = torch.tensor(plain_rows + [k for k, c in zip(phys, counts) for _ in range(c)], dtype=torch.long)
@@ -924,7 +929,7 @@ class Crowd:
         K = max(counts)
         idx = start[many][:, None] + torch.arange(K)[None] % per[many][:, None]
         wanted = torch.empty(len(many), 2, dtype=torch.float64)
-        reaching = torch.tensor([batch.targets[plain[n]] is not None and batch.adaptors[plain[n]] is not None for n in many])
+        reaching = torch.tensor([_reaching(batch, plain[n]) for n in many])
         for m, n in enumerate(many):
             if reaching[m]:
                 wanted[m] = batch.targets[plain[n]].double()
