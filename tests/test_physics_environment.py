@@ -214,3 +214,80 @@ def test_the_world_environment_in_the_crowd(tmp_path):
     crowd.set_ground()
     assert crowd.environment.plain
     assert math.isclose(float(joints_of(crowd.state(plain).double())[0, 0]), 3.0, abs_tol=1.0)
+
+
+def _ball_frames(ball, env, frames):
+    from avatar_motor.physics.simulate import _ball_hits
+    far = torch.full((NUM_JOINTS, 3), 100.0, dtype=torch.float64)  # a body nowhere near the ball
+    still, masses = torch.zeros(NUM_JOINTS, 3, dtype=torch.float64), torch.full((NUM_JOINTS,), 3.0, dtype=torch.float64)
+    out = []
+    for _ in range(frames):
+        _, ball, hit = _ball_hits(far, still, masses, ball, PhysicsConfig().gravity, env)
+        assert not hit
+        out.append(ball)
+    return out
+
+
+def test_a_fast_ball_bounces_off_a_thin_turned_wall_and_does_not_pass_through():
+    """15 m/s (50 cm a frame) at a wall 10 cm thick turned 30 degrees: the ball never gets behind
+    it (swept test), comes back with half its speed across the wall's face (SURFACE_RESTITUTION)
+    and keeps TANGENTIAL_KEPT of it along the face; without the wall it flies on."""
+    from avatar_motor.physics.simulate import SURFACE_RESTITUTION, TANGENTIAL_KEPT, Ball
+    wall = Box((0.0, 0.0), (3.0, 1.0, 0.1), 30.0)
+    R, c, half = wall.frame()
+    u0 = torch.tensor([0.0, 0.0, -15.0], dtype=torch.float64)
+    ball = Ball(torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64), u0.clone(), 1.0, 0.11)
+    seen = _ball_frames(ball, Environment(boxes=(wall,)), 5)  # (then it would meet the floor)
+    depth = [float(((b.position - c) @ R)[2]) for b in seen]  # along the wall's normal, from its middle
+    assert min(depth) >= half[2] + 0.11 - 1e-9  # always on the near side, never inside or through
+    w0, w1 = u0 @ R, seen[-1].velocity @ R
+    assert float(w1[2]) == pytest.approx(-SURFACE_RESTITUTION * float(w0[2]), abs=1e-9)
+    assert float(w1[0]) == pytest.approx(TANGENTIAL_KEPT * float(w0[0]), abs=1e-9)
+    free = _ball_frames(ball, Environment(), 5)
+    assert float(free[-1].position[2]) < -1.0
+
+
+def test_a_ball_dropped_on_a_box_comes_to_rest_on_its_top_and_one_inside_is_put_out():
+    from avatar_motor.physics.simulate import Ball
+    box = Box((0.0, 0.0), (1.0, 0.8, 1.0))
+    drop = Ball(torch.tensor([0.1, 1.6, 0.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 2.0, 0.1)
+    seen = _ball_frames(drop, Environment(boxes=(box,)), 90)
+    ys = torch.tensor([float(b.position[1]) for b in seen])
+    assert float(ys.min()) >= 0.9 - 1e-9  # on the top (0.8 m) by its radius, never into it
+    assert float(ys[-10:].max()) < 0.92 and abs(float(seen[-1].position[0]) - 0.1) < 1e-9
+    inside = Ball(torch.tensor([0.45, 0.4, 0.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 2.0, 0.1)
+    (out,) = _ball_frames(inside, Environment(boxes=(box,)), 1)
+    assert float(out.position[0]) >= 0.6 - 1e-9  # through the nearest face (+x), by its radius
+
+
+def test_an_obstacle_between_shields_the_avatar_from_a_ball(tmp_path):
+    """In the crowd: a ball thrown at a physics avatar's chest through a wall placed between them
+    bounces back off the wall (half its speed) and stays on the wall's far side from the body;
+    without the wall it flies on past where the wall would be, to the body."""
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+
+    def run(wall):
+        crowd = Crowd(motor, RuntimeConfig(), 0)
+        i = crowd.spawn()
+        crowd.set_physics(i, True)
+        for _ in range(3):
+            crowd.next_frames()
+        chest = joints_of(crowd.state(i))[JOINT_INDEX["spine3"]].double()
+        face = float(chest[2]) + 0.6 + 0.05  # the wall's face toward the ball: 0.6 m in front, 10 cm thick
+        if wall:
+            crowd.add_obstacle([float(chest[0]), float(chest[2]) + 0.6], [2.0, 2.0, 0.1])
+        crowd.throw(i, (chest + torch.tensor([0.0, 0.0, 1.5], dtype=torch.float64)).tolist(), [0.0, 1.0, -12.0], mass=3.0)
+        seen = []
+        for _ in range(15):
+            crowd.next_frames()
+            seen += [(b.position[2].item(), b.velocity[2].item()) for b in crowd.balls(i)]
+        return face, seen
+
+    face, free = run(False)
+    assert free and min(z for z, _ in free) < face - 0.3  # on to the body
+    face, shielded = run(True)
+    assert shielded and min(z for z, _ in shielded) >= face + 0.11 - 1e-6  # never into or past the wall
+    assert max(v for _, v in shielded) == pytest.approx(6.0, abs=0.5)  # back at half of 12 m/s

@@ -7,8 +7,8 @@ prediction of what this body does next, K ways) and hands them in; frame i's can
 samples' frame i (DROP samples one frame ahead; a segment model gives 15 at once, so the manifold
 for frame i is conditioned on the segment's start, and a perturbation cuts and resamples).
 
-Balls are rigid spheres under gravity that bounce on the ground. A ball meets a joint's collision
-sphere (COLLISION_RADIUS) when their centres come within the two radii during the frame (swept,
+Balls are rigid spheres under gravity that bounce on the ground and off the obstacles. A ball
+meets a joint's collision sphere (COLLISION_RADIUS) when their centres come within the two radii during the frame (swept,
 so a fast ball does not pass through a wrist between two frames). The hit is an impulse along
 the line of centres, shared as a collision of the ball with the part of the body around the hit
 joint (the joints within HIT_REACH of it, their masses; the rest of the body follows through the
@@ -23,13 +23,14 @@ import torch
 
 from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
 from ..runtime.processing import spring_decay
-from .environment import FLAT, Environment, Ground, lift_above, push_out_of_boxes
+from .environment import FLAT, Environment, lift_above, push_out_of_boxes
 from .solver import (COLLISION_RADIUS, H, REST_HEIGHT, Bodies, Candidates, PhysicsConfig, ballistic_candidates,
                      pose_from_particles, step)
 from .wrench import correct
 
 BALL_RESTITUTION = 0.3  # the ball keeps this share of its speed along the hit (a leather ball on a body)
-GROUND_RESTITUTION = 0.5  # and this on the ground
+SURFACE_RESTITUTION = 0.5  # and this on the ground and the obstacles
+TANGENTIAL_KEPT = 0.8  # and this share of its speed along the surface it bounces off
 HIT_REACH = 0.3  # m: the joints around a hit one that take the blow with it
 PLANTED_MARGIN = 0.07  # m above its resting height a joint counts as on the ground (no carried pull)
 
@@ -62,11 +63,57 @@ class Spring:
     damping: float = 40.0  # N s/m
 
 
+def _off_boxes(p: torch.Tensor, u: torch.Tensor, dt: float, radius: float, boxes: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+    """A ball at p (3,) moving at u (3,) for dt s, against the obstacles (environment.Box): where it
+    is at the end and its velocity. Swept, so that a fast ball does not pass through a thin bar in
+    a frame: the path is cut with each box grown by the radius (the slab test in the box's frame;
+    a rounded box's corners taken as square), and at the first face it meets the ball bounces
+    (SURFACE_RESTITUTION across the face, TANGENTIAL_KEPT along it) and travels the rest of dt (a
+    second box in that rest is not looked at). A ball already inside a box (one placed onto it)
+    leaves through its nearest face."""
+    first = None  # (time share, box, face axis, side, the hit point in box coordinates)
+    for box in boxes:
+        R, c, half = box.frame(p.dtype)
+        e = half + radius
+        q0 = (p - c) @ R  # box coordinates
+        d = (u @ R) * dt
+        if bool((q0.abs() < e).all()):
+            axis = int((e - q0.abs()).argmin())
+            side = 1.0 if float(q0[axis]) >= 0 else -1.0
+            q_hit = q0.clone()
+            q_hit[axis] = side * e[axis]
+            first = (0.0, box, axis, side, q_hit)
+            break
+        safe = torch.where(d.abs() > 1e-12, d, torch.full_like(d, 1e-12))
+        t1, t2 = (-e - q0) / safe, (e - q0) / safe
+        near, far = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        still = d.abs() <= 1e-12  # not moving along an axis: inside that slab always, or never
+        near = torch.where(still, torch.where(q0.abs() < e, -torch.inf, torch.inf), near)
+        far = torch.where(still, torch.where(q0.abs() < e, torch.inf, -torch.inf), far)
+        t_in, t_out = float(near.max()), float(far.min())
+        if t_in <= t_out and 0.0 <= t_in <= 1.0 and (first is None or t_in < first[0]):
+            axis = int(near.argmax())
+            q_hit = q0 + t_in * d
+            first = (t_in, box, axis, 1.0 if float(q_hit[axis]) >= 0 else -1.0, q_hit)
+    if first is None:
+        return p + dt * u, u
+    t_hit, box, axis, side, q_hit = first
+    R, c, half = box.frame(p.dtype)
+    w = u @ R
+    if float(w[axis]) * side < 0:  # moving into the face: bounce
+        across = -SURFACE_RESTITUTION * w[axis]
+        w = TANGENTIAL_KEPT * w
+        w[axis] = across
+    q = q_hit + (1.0 - t_hit) * dt * w
+    q[axis] = side * max(side * float(q[axis]), float(half[axis] + radius))  # not back into the box
+    return q @ R.T + c, w @ R.T
+
+
 def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Ball, g: float,
-               ground: Ground = Ground()) -> tuple[torch.Tensor, Ball, bool]:
-    """One frame of a ball against one body: joints x (22, 3), velocities v (22, 3), masses (22,).
-    Returns the force (22, 3) the body takes over the frame, the ball a frame later, and whether
-    it hit."""
+               env: Environment = FLAT) -> tuple[torch.Tensor, Ball, bool]:
+    """One frame of a ball against one body: joints x (22, 3), velocities v (22, 3), masses (22,),
+    in the environment env (the ground and the obstacles). Returns the force (22, 3) the body
+    takes over the frame, the ball a frame later, and whether it hit."""
     f = torch.zeros_like(x)
     p, u = ball.position.to(x.dtype), ball.velocity.to(x.dtype)
     # the swept test: when during the frame the ball's sphere first touches each joint's, both
@@ -92,16 +139,18 @@ def _ball_hits(x: torch.Tensor, v: torch.Tensor, masses: torch.Tensor, ball: Bal
         f[hit] = -J * n / H
         p = p + s * u  # to the contact, then away with the new velocity
         u = u + (J / ball.mass) * n
-        p = p + (H - s) * u
+        rest = H - s
     else:
-        p = p + H * u
+        rest = H
+    p, u = _off_boxes(p, u, rest, ball.radius, env.boxes) if env.boxes else (p + rest * u, u)
     u = u - torch.tensor([0.0, g * H, 0.0], dtype=x.dtype)
+    ground = env.ground
     n = ground.normal(x.dtype)
     if float(ground.height(p)) < ball.radius:  # the ground: back onto it, bouncing off along its normal
         p = p + (ball.radius - ground.height(p)) * n
         along = (u * n).sum()
         if float(along) < 0:
-            u = 0.8 * (u - along * n) - GROUND_RESTITUTION * along * n
+            u = TANGENTIAL_KEPT * (u - along * n) - SURFACE_RESTITUTION * along * n
     return f, Ball(p.to(ball.position.dtype), u.to(ball.velocity.dtype), ball.mass, ball.radius), hit_any
 
 
@@ -162,7 +211,7 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
                 f[b, sp.joint] += sp.stiffness * (sp.target.double() - x[b, sp.joint]) - sp.damping * v[b, sp.joint]
             moved = []
             for ball in balls[b]:
-                fb, ball, struck = _ball_hits(x[b], v[b], bodies.masses[b], ball, cfg.gravity, env.ground)
+                fb, ball, struck = _ball_hits(x[b], v[b], bodies.masses[b], ball, cfg.gravity, env)
                 f[b] += fb
                 hit[b] |= struck
                 moved.append(ball)
