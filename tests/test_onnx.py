@@ -67,6 +67,10 @@ def test_int8_weights_make_a_smaller_graph_that_computes_nearly_the_same(tmp_pat
     rel = float((out - ref).abs().mean() / ref.pow(2).mean().sqrt())
     print(f"int8 vs float32 weights: mean absolute error {rel:.3f} of the output's RMS")
     assert 0 < rel < 0.1
+    # 7-bit weights, which the CPUs whose int8 kernels saturate get (model/onnx._int8_pairs_saturate;
+    # 8-bit read 0.14-0.16 on an AVX2-only EPYC): near on any CPU
+    seven = OnnxDenoiser(quantize_int8(f32, reduce_range=True))(*args)
+    assert float((seven - ref).abs().mean() / ref.pow(2).mean().sqrt()) < 0.1
     assert torch.equal(out, b(*args))  # deterministic
     # each row on its own activation scales: an avatar's result does not depend on its batch
     alone = b(*(a[3:4] for a in args))
