@@ -8,8 +8,8 @@ samples' frame i (DROP samples one frame ahead; a segment model gives 15 at once
 for frame i is conditioned on the segment's start, and a perturbation cuts and resamples).
 
 Balls are rigid spheres under gravity that bounce on the ground and off the obstacles. A ball
-meets a joint's collision sphere (COLLISION_RADIUS) when their centres come within the two radii during the frame (swept,
-so a fast ball does not pass through a wrist between two frames). The hit is an impulse along
+meets a joint's collision sphere (COLLISION_RADIUS) when their centres come within the two radii
+during the frame (swept, so a fast ball does not pass through a wrist between two frames). The hit is an impulse along
 the line of centres, shared as a collision of the ball with the part of the body around the hit
 joint (the joints within HIT_REACH of it, their masses; the rest of the body follows through the
 bones in the solve), with restitution BALL_RESTITUTION; the body takes it as a force over the frame.
@@ -71,18 +71,17 @@ def _off_boxes(p: torch.Tensor, u: torch.Tensor, dt: float, radius: float, boxes
     (SURFACE_RESTITUTION across the face, TANGENTIAL_KEPT along it) and travels the rest of dt (a
     second box in that rest is not looked at). A ball already inside a box (one placed onto it)
     leaves through its nearest face."""
-    first = None  # (time share, box, face axis, side, the hit point in box coordinates)
+    first = None  # (time share, face axis, side, the hit point in box coordinates, the box's frame)
     for box in boxes:
-        R, c, half = box.frame(p.dtype)
-        e = half + radius
-        q0 = (p - c) @ R  # box coordinates
+        q0, e, R, c = box.local(p[None], torch.tensor([radius], dtype=p.dtype))  # box coordinates, grown box
+        q0, e = q0[0], e[0]
         d = (u @ R) * dt
         if bool((q0.abs() < e).all()):
             axis = int((e - q0.abs()).argmin())
             side = 1.0 if float(q0[axis]) >= 0 else -1.0
             q_hit = q0.clone()
             q_hit[axis] = side * e[axis]
-            first = (0.0, box, axis, side, q_hit)
+            first = (0.0, axis, side, q_hit, R, c, e)
             break
         safe = torch.where(d.abs() > 1e-12, d, torch.full_like(d, 1e-12))
         t1, t2 = (-e - q0) / safe, (e - q0) / safe
@@ -94,18 +93,17 @@ def _off_boxes(p: torch.Tensor, u: torch.Tensor, dt: float, radius: float, boxes
         if t_in <= t_out and 0.0 <= t_in <= 1.0 and (first is None or t_in < first[0]):
             axis = int(near.argmax())
             q_hit = q0 + t_in * d
-            first = (t_in, box, axis, 1.0 if float(q_hit[axis]) >= 0 else -1.0, q_hit)
+            first = (t_in, axis, 1.0 if float(q_hit[axis]) >= 0 else -1.0, q_hit, R, c, e)
     if first is None:
         return p + dt * u, u
-    t_hit, box, axis, side, q_hit = first
-    R, c, half = box.frame(p.dtype)
+    t_hit, axis, side, q_hit, R, c, e = first
     w = u @ R
     if float(w[axis]) * side < 0:  # moving into the face: bounce
         across = -SURFACE_RESTITUTION * w[axis]
         w = TANGENTIAL_KEPT * w
         w[axis] = across
     q = q_hit + (1.0 - t_hit) * dt * w
-    q[axis] = side * max(side * float(q[axis]), float(half[axis] + radius))  # not back into the box
+    q[axis] = side * max(side * float(q[axis]), float(e[axis]))  # not back into the box
     return q @ R.T + c, w @ R.T
 
 
