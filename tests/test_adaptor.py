@@ -325,6 +325,11 @@ def test_nearest_candidate_picks_the_segment_ending_nearest_the_target():
             cands[a, k, -1, pelvis][[0, 2]] = ends[a, k].double()
     targets = torch.tensor([[0.5, 0.0], [1.0, 1.0]])
     assert nearest_candidate(cands, targets).tolist() == [1, 2]
+    # a penalty (the metres a wall moved each candidate) is added to the distance; without a
+    # target (NaN) it alone decides
+    penalty = torch.tensor([[0.0, 2.0, 0.0], [0.3, 0.0, 0.5]])
+    assert nearest_candidate(cands, targets, penalty).tolist() == [0, 1]
+    assert nearest_candidate(cands, torch.full((2, 2), float("nan")), penalty).tolist() == [0, 1]
 
 
 def test_a_reaching_avatar_shows_the_nearest_of_its_candidates(tmp_path):
@@ -343,8 +348,8 @@ def test_a_reaching_avatar_shows_the_nearest_of_its_candidates(tmp_path):
         crowd = Crowd(motor, RuntimeConfig(reach_candidates=K), seed=seed, adaptors=ad)
         choose = crowd._choose_nearest
 
-        def spy(batch, plain, counts, seg):
-            out = choose(batch, plain, counts, seg)
+        def spy(batch, plain, counts, seg, moved=None):
+            out = choose(batch, plain, counts, seg, moved)
             seen.append((counts, seg, out))
             return out
         crowd._choose_nearest = spy
@@ -381,7 +386,8 @@ def test_an_avatar_with_a_velocity_goal_shows_the_candidate_ending_where_the_goa
     crowd.set_goal(i, (0.0, 1.2))
     x0 = crowd.state(i).double()
     shown = crowd.step_segment()[i]
-    (batch, plain, counts, seg), = seen
+    (batch, plain, counts, seg, moved), = seen
+    assert moved is None  # no obstacle: nothing slid
     assert counts == [3]
     T, lam = seg.shape[1] / 30.0, math.log(2) / 0.2
     v0 = x0[201:267].view(22, 3)[0, [0, 2]]

@@ -9,7 +9,7 @@ import torch
 from avatar_motor.body.motion_state import unpack
 from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, rest_offsets
 from avatar_motor.physics.environment import (Box, Environment, Ground, lift_above, project_box, push_out_of_boxes,
-                                              touching)
+                                              slide_out_of_boxes, touching)
 from avatar_motor.physics.solver import (BONES, COLLISION_RADIUS, H, REST_HEIGHT, Candidates, PhysicsConfig, com_pull,
                                          energies, prepare, project_bones, project_ground, solve_global, step)
 from avatar_motor.runtime.crowd import standing_state
@@ -111,6 +111,106 @@ def test_a_body_is_moved_out_of_a_box_as_one_piece_through_the_nearest_face():
     assert torch.equal(push_out_of_boxes(J, r, Environment()), torch.zeros(2, 3, dtype=torch.float64))
 
 
+def _walk(B: int, frames: int, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A standing body (B copies) carried `step` (B, 3) m a frame: segments (B, frames, 22, 3) and the frame before."""
+    J = _standing(B)[0]
+    seg = J[:, None] + step[:, None, None] * torch.arange(1, frames + 1, dtype=torch.float64)[None, :, None, None]
+    return seg, J
+
+
+def _inside(J: torch.Tensor, box: Box, r: torch.Tensor, tol: float = 1e-9) -> torch.Tensor:
+    q, e, _, _ = box.local(J, r)
+    return ((e - q.abs()) > tol).all(-1).any(-1)
+
+
+def test_a_body_the_model_moves_alone_is_stopped_by_a_wall_slides_along_one_at_an_angle_and_never_goes_up():
+    """slide_out_of_boxes: walking straight at a wall (5 cm a frame) the body stops at its face and
+    stays stopped while its model walks on; at a wall turned 30 degrees it keeps going along the
+    face; a body at 30 cm a frame does not pop through a 4 cm wall; the shift is horizontal (a body
+    stepping onto a low box is not lifted) and zero for a body no box is near."""
+    r = COLLISION_RADIUS
+    wall = Box((0.0, 1.0), (3.0, 1.5, 0.1))
+    thin = Box((0.0, 1.0), (3.0, 1.5, 0.04))
+    step = torch.tensor([[0.0, 0.0, 0.05], [0.0, 0.0, 0.30], [0.0, 0.0, 0.05]], dtype=torch.float64)
+    seg, before = _walk(3, 40, step)
+    seg[2] += torch.tensor([20.0, 0.0, 0.0], dtype=torch.float64)  # far from every box
+    before[2] += torch.tensor([20.0, 0.0, 0.0], dtype=torch.float64)
+    for box in (wall, thin):
+        shift = slide_out_of_boxes(seg, before, r, Environment(boxes=(box,)))
+        moved = seg + shift[:, :, None]
+        assert not _inside(moved, box, r).any()
+        assert torch.equal(shift[..., 1], torch.zeros_like(shift[..., 1])) and torch.equal(shift[2], torch.zeros_like(shift[2]))
+        for b in (0, 1):  # in front of the wall, not behind it: the pelvis stopped short of its near face
+            front = float(box.centre[1]) - box.size[2] / 2
+            assert float(moved[b, :, 0, 2].max()) < front
+            assert float(moved[b, -1, 0, 2]) == pytest.approx(float(moved[b, -10, 0, 2]), abs=1e-9)  # stays stopped
+    # at an angle the body keeps the motion along the face
+    turned = Box((0.0, 1.0), (3.0, 1.5, 0.1), 30.0)
+    seg, before = _walk(1, 60, step[:1])
+    shift = slide_out_of_boxes(seg, before, r, Environment(boxes=(turned,)))
+    moved = seg + shift[:, :, None]
+    assert not _inside(moved, turned, r).any()
+    assert float(moved[0, -1, 0, 0]) < -0.5  # it slid sideways along the turned face (toward -x)
+    # a box to step on is a wall too: never a lift
+    step_box = Box((0.0, 0.5), (3.0, 0.15, 1.0))
+    shift = slide_out_of_boxes(seg, before, r, Environment(boxes=(step_box,)))
+    assert torch.equal(shift[..., 1], torch.zeros_like(shift[..., 1])) and not _inside(seg + shift[:, :, None], step_box, r).any()
+    assert torch.equal(slide_out_of_boxes(seg, before, r, Environment()), torch.zeros(1, 60, 3, dtype=torch.float64))
+    # a hand swung through a wall between two frames (never inside at a frame) counts as inside:
+    # the body is put back on the side it came from, not left straddling the wall
+    H = JOINT_INDEX["left_wrist"]
+    J0 = _standing(1)[0]
+    ahead = float((J0[0, :, 2] + r).max())  # the body's front (its toes), 2 cm before the 10 cm wall at z = 1
+    before = J0 + torch.tensor([0.0, 0.0, 1.0 - 0.05 - 0.02 - ahead], dtype=torch.float64)
+    swung = before.clone()
+    swung[0, H, 2] = 1.0 + 0.05 + float(r[H]) + 0.01  # the hand 1 cm behind the wall the next frame
+    shift = slide_out_of_boxes(swung[:, None], before, r, Environment(boxes=(wall,)))
+    assert float(swung[0, H, 2] + shift[0, 0, 2]) == pytest.approx(1.0 - 0.05 - float(r[H]), abs=1e-9)  # at the near face
+
+
+def test_an_avatar_not_in_physics_mode_meets_an_obstacle_as_a_wall_and_stays_one_body(tmp_path):
+    """In the crowd: an avatar sent at a wall at 1.2 m/s (no physics mode) never puts a joint of the
+    body users get (FK of its rotations) into the wall, its velocities stay the backward
+    differences of its joints, and its goal is turned along the wall before it (none into it);
+    with the shipped model it stops in front of the wall and, with the wall turned, goes past its end."""
+    from avatar_motor.body.motion_state import body_joints, joints_of
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import SHIPPED, shipped_or_tiny
+    crowd = Crowd(shipped_or_tiny(tmp_path), RuntimeConfig(), 0)
+    i = crowd.spawn()
+    for _ in range(3):
+        crowd.next_frames()
+    epoch = crowd.avatars[i].epoch
+    crowd.add_obstacle((0.0, 1.8), (3.0, 1.5, 0.1))
+    wall = crowd.environment.boxes[0]
+    crowd.set_goal(i, [0.0, 1.2])
+    a = crowd.avatars[i]
+    shown = [crowd.state(i)]
+    for _ in range(150):
+        shown.append(crowd.next_frames()[i])
+        if _inside(joints_of(a.state.double())[None], wall, COLLISION_RADIUS)[0]:
+            break
+    X = torch.stack(shown).double()
+    J = body_joints(X, rest_offsets(crowd.shape(i), torch.float64))
+    assert not _inside(J, wall, COLLISION_RADIUS, 1e-4).any()  # float32 states: within 0.1 mm
+    v = X[1:, 201:267].reshape(-1, 22, 3)
+    assert torch.allclose(v, (J[1:] - J[:-1]) * 30, atol=2e-2)
+    # the goal before the wall has no part into it
+    near = crowd._along_walls(a, torch.tensor([0.0, 0.0, 1.2]))
+    if float(joints_of(a.state.double())[0, 2]) > 1.8 - 0.05 - 0.6:  # within reach of the wall in 0.4 s
+        assert float(near[2]) == pytest.approx(0.0, abs=1e-6)
+    if SHIPPED.joinpath("model.safetensors").exists():
+        assert float(J[-1, 0, 2]) > 1.0  # it walked up to the wall
+        crowd.remove_obstacle()
+        crowd.reset(i)
+        crowd.add_obstacle((0.0, float(J[-1, 0, 2]) + 0.5), (3.0, 1.5, 0.1), 30.0)
+        crowd.set_goal(i, [0.0, 1.2])
+        for _ in range(240):
+            crowd.next_frames()
+        assert float(joints_of(crowd.state(i).double())[0, 2]) > float(J[-1, 0, 2]) + 1.0  # round its end
+    assert epoch <= crowd.avatars[i].epoch
+
+
 def test_a_body_touches_the_ground_or_an_obstacle_within_the_margin_else_it_flies():
     box = Box((0.0, 1.0), (2.0, 0.3, 0.2))  # top at 0.3 m
     r = COLLISION_RADIUS
@@ -183,8 +283,8 @@ def test_the_centre_of_mass_energy_alone_moves_a_free_body_toward_the_goal_veloc
 
 
 def test_the_world_environment_in_the_crowd(tmp_path):
-    """set_ground / add_obstacle / remove_obstacle change the world of physics mode, cut the
-    simulated avatars' queues (they met the old world), leave the others alone, and name a bad
+    """set_ground / add_obstacle / remove_obstacle change the world, cut the simulated avatars'
+    queues (they met the old world), leave the others alone (none walks into the box), name a bad
     value; a body on a tilted ground stands on it (no joint below the plane)."""
     from avatar_motor.body.motion_state import joints_of
     from avatar_motor.runtime.crowd import Crowd, RuntimeConfig

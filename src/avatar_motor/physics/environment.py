@@ -7,9 +7,10 @@ change to the system matrix (solver.py): the contact projection is only a differ
 
 A foot that meets a box's side is held at the point where it touched until the motion model's
 pull lifts it above the top: so a box across the path trips a walking body the way DROP's fixed
-heel does, and a box low enough is stepped over. Balls bounce on the ground plane and pass
-through boxes (not modelled). Pure functions on batched tensors; the world (runtime Crowd) holds
-one Environment for every body in physics mode."""
+heel does, and a box low enough is stepped over. Balls bounce off the ground and the boxes
+(simulate.py). A body the motion model moves alone (not in physics mode) meets a box as a wall:
+it is moved out of it as one piece and slides along it (slide_out_of_boxes). Pure functions on
+batched tensors; the world (runtime Crowd) holds one Environment for every avatar."""
 from __future__ import annotations
 
 import math
@@ -232,4 +233,74 @@ def push_out_of_boxes(J: torch.Tensor, radius: torch.Tensor, env: Environment, r
             moved = True
         if not moved:
             break
+    return shift
+
+
+def slide_out_of_boxes(J: torch.Tensor, before: torch.Tensor, radius: torch.Tensor, env: Environment,
+                       rounds: int = 8) -> torch.Tensor:
+    """(B, T, 3): the horizontal shift of each frame of segments J (B, T, 22, 3), which follow the
+    frames `before` (B, 22, 3), that keeps every joint's collision sphere (radius (22,)) out of the
+    boxes, for a body the motion model moves alone (not in physics mode): to it an obstacle is a
+    wall, as to a game's character controller. Frame by frame, the shift so far is carried on (a
+    body a wall stopped stays stopped while its model walks on, and slides along a wall it meets
+    at an angle); then, each round, the sphere furthest inside leaves through the side face it came
+    in by (the one it was furthest outside of the frame before, so a fast body does not pop through
+    a thin wall; the nearest side face if it was inside then too), as does a sphere that went
+    through the box since the frame before, and the whole body moves with it.
+    Never up: the model's body cannot climb, so nothing keeps it on a box's top (physics mode
+    steps on and over boxes). Zero where no box is near."""
+    B, T = J.shape[:2]
+    shift = torch.zeros(B, T, 3, dtype=J.dtype)
+    if not env.boxes:
+        return shift
+    frames = [b.frame(J.dtype) for b in env.boxes]
+    R = torch.stack([f[0] for f in frames])  # (n, 3, 3) each box's axes as columns
+    c = torch.stack([f[1] for f in frames])  # (n, 3)
+    e = torch.stack([f[2] for f in frames])[:, None, :] + radius.to(J.dtype)[None, :, None]  # (n, 22, 3) grown
+    side_axes = torch.tensor([0, 2])
+
+    def local(x):  # (B, 22, 3) -> (B, n, 22, 3) box coordinates
+        return torch.einsum("bnjk,nkl->bnjl", x[:, None] - c[None, :, None], R)
+
+    def meets(q, qp):  # (..., n, 22): inside now, or gone through since qp (a hand swung 25 cm a frame through a 10 cm wall)
+        out = q.abs() >= e
+        crossed = (q * qp < 0) & out & (qp.abs() >= e)  # on opposite sides of the box along an axis
+        x_through = crossed[..., 0] & ~out[..., 1] & ~out[..., 2]
+        z_through = crossed[..., 2] & ~out[..., 0] & ~out[..., 1]
+        return ~out.any(-1) | x_through | z_through
+
+    # the shift stays zero until a frame as the model made it meets a box: only such bodies are
+    # stepped through (the others cost one test of all their frames at once)
+    raw = torch.einsum("btnjk,nkl->btnjl", J[:, :, None] - c[None, None, :, None], R)
+    raw_prev = torch.cat((local(before.to(J.dtype))[:, None], raw[:, :-1]), 1)
+    hit = meets(raw, raw_prev).flatten(1).any(-1)
+    if not bool(hit.any()):
+        return shift
+    if not bool(hit.all()):
+        shift[hit] = slide_out_of_boxes(J[hit], before[hit], radius, env, rounds)
+        return shift
+    s = torch.zeros(B, 3, dtype=J.dtype)
+    prev = before.to(J.dtype)
+    rows = torch.arange(B)
+    for t in range(T):
+        qp = local(prev)
+        for _ in range(rounds):
+            q = local(J[:, t] + s[:, None])
+            inside = meets(q, qp)  # (B, n, 22)
+            if not bool(inside.any()):
+                break
+            was_out = ((qp.abs() - e)[..., side_axes].amax(-1) > -1e-9)[..., None]
+            ref = torch.where(was_out, qp, q)[..., side_axes]  # (B, n, 22, 2)
+            axis = (ref.abs() - e[..., side_axes]).argmax(-1, keepdim=True)  # 0: the box's X, 1: its Z
+            side = torch.where(ref.gather(-1, axis) >= 0, 1.0, -1.0).to(J.dtype)
+            # how far along the box's axis the sphere must go to reach that face
+            need = side * e[..., side_axes].expand_as(ref).gather(-1, axis) - q[..., side_axes].gather(-1, axis)
+            need = torch.where(inside[..., None], need, torch.zeros_like(need))[..., 0]  # (B, n, 22)
+            flat = need.abs().flatten(1).argmax(-1)  # the furthest inside, over boxes and joints
+            box, joint = flat // need.shape[2], flat % need.shape[2]
+            d = need[rows, box, joint]
+            ax = side_axes[axis[rows, box, joint, 0]]
+            s = s + d[:, None] * R[box, :, ax]  # along that box axis (a column of R) in the world
+        shift[:, t] = s
+        prev = J[:, t] + s[:, None]
     return shift

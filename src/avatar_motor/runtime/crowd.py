@@ -24,8 +24,8 @@ from ..body.motion_state import (FPS, SLICES, STATE_DIM, Transform, apply_transf
                                  horizontal, velocities_of)
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
-from ..physics.environment import OBSTACLE_CLEARANCE, FLAT, MAX_BOXES, Box, Environment, Ground
-from ..physics.solver import PhysicsConfig, prepare as prepare_bodies
+from ..physics.environment import OBSTACLE_CLEARANCE, FLAT, MAX_BOXES, Box, Environment, Ground, slide_out_of_boxes
+from ..physics.solver import COLLISION_RADIUS, PhysicsConfig, prepare as prepare_bodies
 from ..model.persona import trajectory_of
 from .guidance import goal_trajectory
 from .processing import PAST, continuous_past, nearest_candidate, physical_faults
@@ -137,6 +137,17 @@ class RuntimeConfig:
     # arrive_time, through the steering impulse, as a car's "arrive" behaviour slows toward its goal
     arrive_within: float = 0.5
     arrive_time: float = 0.5
+    # an avatar not in physics mode whose velocity goal would take its body into an obstacle within
+    # this many seconds is given the goal's part along the wall only (none into it; 0 = never): it
+    # stops at a wall it walks at instead of treading on the spot against it (its frames are slid
+    # out of boxes either way, environment.slide_out_of_boxes), and walks along one it meets at an angle
+    wall_lookahead: float = 0.4
+    # such an avatar within OBSTACLE_CLEARANCE of an obstacle draws this many candidate segments (in
+    # the same batch) and is shown the one the walls move least (with a goal or a target: plus its
+    # distance from where it is asked to be), so that the model's own motion turns from a wall
+    # rather than being pushed along it. Seeds 0-4 (docs/physics.md): foot skating at a wall
+    # head-on / turned 30 degrees, frames slid only 0.110 / 0.175; with both 0.030 / 0.036
+    wall_candidates: int = 4
     # a reaching avatar's sampler draws this many candidate segments (in the same batch) and the
     # one whose pelvis ends nearest the target is shown (processing.nearest_candidate; 1 = off).
     # eval reach (45 x 8 targets x 2 s, scale 2.5), 1 -> 4: shipped adaptor 0.024 -> 0.018 m, ASR
@@ -270,6 +281,26 @@ def _raised(x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
     out[..., r + 1:r + 2] += up
     out[..., j + 1:j + 66:3] += up
     return out
+
+
+def _slid(seg: torch.Tensor, x0: torch.Tensor, env: Environment) -> tuple[torch.Tensor, torch.Tensor]:
+    """World segments (B, N, 267) that follow states x0 (B, 267), moved along the obstacles they
+    walk into (environment.slide_out_of_boxes): root and joints shifted, the shift's own velocity
+    added to the joints' backward differences (frame 0's from x0), so each frame stays one body
+    (the rotations, and so the exported body's shape, are untouched); and how far (B,) m each
+    segment was moved by its end."""
+    B, N = seg.shape[:2]
+    j = SLICES["joints"]
+    shift = slide_out_of_boxes(seg[..., j].reshape(B, N, 22, 3), x0[:, j].reshape(B, 22, 3), COLLISION_RADIUS, env)
+    moved = shift[:, -1].norm(dim=-1)
+    if not bool((shift != 0).any()):
+        return seg, moved
+    out = seg.clone()
+    out[..., SLICES["root_pos"]] += shift
+    out[..., j] += shift.repeat(1, 1, 22)
+    step = torch.diff(shift, dim=1, prepend=torch.zeros(B, 1, 3, dtype=shift.dtype)) * FPS
+    out[..., SLICES["velocities"]] += step.repeat(1, 1, 22)
+    return out, moved
 
 
 def _body_to_world(a: AvatarState) -> torch.Tensor:
@@ -653,7 +684,8 @@ class Crowd:
 
     def add_obstacle(self, centre, size, yaw: float = 0.0) -> int:
         """A static box standing on the floor at centre (x, z), of size (x, y, z) m, turned by yaw
-        degrees; avatars in physics mode run into it (a low one trips a foot). Returns its index."""
+        degrees; avatars in physics mode run into it (a low one trips a foot), the others meet it
+        as a wall and slide along it (environment.slide_out_of_boxes). Returns its index."""
         if len(self.environment.boxes) >= MAX_BOXES:
             raise ValueError(f"this world holds at most {MAX_BOXES} obstacles; remove one first")
         self.set_environment(Environment(self.environment.ground,
@@ -672,13 +704,19 @@ class Crowd:
         self.set_environment(Environment(self.environment.ground, boxes))
 
     def set_environment(self, env: Environment) -> None:
-        """The ground and obstacles of physics mode (see set_ground, add_obstacle)."""
+        """The ground (for avatars in physics mode) and the obstacles (for every avatar; see
+        set_ground, add_obstacle)."""
         if env == self.environment:
             return
         self.environment = env
+        j = SLICES["joints"]
         for a in self.avatars.values():
             if a.physics:  # their queued frames met the old world
                 self._cut(a)
+            elif a.queue and env.boxes:  # the model's alone, if its queued frames walk into a box now
+                J = torch.stack(a.queue).double()[:, j].reshape(1, -1, 22, 3)
+                if bool(slide_out_of_boxes(J, a.state.double()[j].reshape(1, 22, 3), COLLISION_RADIUS, env).any()):
+                    self._cut(a)
 
     def balls(self, i: int) -> list:
         """The balls avatar i's simulation holds at the frame shown (physics.Ball, world)."""
@@ -804,11 +842,27 @@ class Crowd:
         """The avatar's velocity goal, or, for a reaching avatar without one, the arrival at its
         target once it is within arrive_within."""
         if a.v_goal is not None or not a.reaching or self.cfg.arrive_within <= 0:
-            return a.v_goal
+            return self._along_walls(a, a.v_goal)
         d = self._to_target(a)
         if float(d.norm()) > self.cfg.arrive_within:
             return None
-        return torch.tensor([float(d[0]), 0.0, float(d[1])]) / self.cfg.arrive_time
+        return self._along_walls(a, torch.tensor([float(d[0]), 0.0, float(d[1])]) / self.cfg.arrive_time)
+
+    def _along_walls(self, a: AvatarState, v: torch.Tensor | None) -> torch.Tensor | None:
+        """Velocity goal v (3,) less its part into the obstacle the body would meet going at it for
+        wall_lookahead s (RuntimeConfig): the way the wall would push that body (slide_out_of_boxes)
+        is the wall's normal. Physics mode's bodies run into walls themselves."""
+        if v is None or a.physics or not self.environment.boxes or self.cfg.wall_lookahead <= 0:
+            return v
+        x = a.queue[-1] if a.queue else a.state
+        J = x.double()[SLICES["joints"]].reshape(1, 22, 3)
+        ahead = J + self.cfg.wall_lookahead * v.double()
+        push = slide_out_of_boxes(ahead[:, None], J, COLLISION_RADIUS, self.environment)[0, 0]
+        if float(push.norm()) < 1e-6:
+            return v
+        n = push / push.norm()
+        into = float(v.double() @ n)
+        return v if into >= 0 else (v.double() - into * n).to(v.dtype)
 
     def _facing_goal(self, a: AvatarState) -> torch.Tensor | None:
         """The avatar's facing goal, or, for a reaching avatar without one, the way to its target
@@ -851,6 +905,10 @@ class Crowd:
         # and a reaching avatar reach_candidates of them (best-of-K: the one ending nearest is shown)
         reach = [self.cfg.reach_candidates if _reaching(batch, k)
                  else self.cfg.goal_candidates if batch.v_goal[k] is not None else 1 for k in plain]
+        if self.environment.boxes and plain:
+            pelvis = batch.x0[plain][:, SLICES["joints"]][:, [0, 2]]
+            walls = ~Environment(boxes=self.environment.boxes).plain_near(pelvis, OBSTACLE_CLEARANCE)
+            reach = [max(c, self.cfg.wall_candidates) if bool(w) else c for c, w in zip(reach, walls)]
         plain_rows = [k for k, c in zip(plain, reach) for _ in range(c)]
         rows = torch.tensor(plain_rows + [k for k, c in zip(phys, counts) for _ in range(c)], dtype=torch.long)
         every = len(rows) == len(batch) and not phys
@@ -871,8 +929,11 @@ class Crowd:
                                seg_all[:len(plain_rows)].float())
             # 4 back to world
             seg = apply_transform(seg.double(), tf.R[p], tf.t[p])
+            moved = None
+            if self.environment.boxes:  # before the choice: a goal's candidate is judged where the wall lets it go
+                seg, moved = _slid(seg, batch.x0[p].double(), self.environment)
             if len(plain_rows) > len(plain):
-                seg = self._choose_nearest(batch, plain, reach, seg)
+                seg = self._choose_nearest(batch, plain, reach, seg, moved)
             seg_w[torch.tensor(plain)] = seg.float()
         t3 = time.perf_counter()
         if phys:
@@ -918,29 +979,33 @@ class Crowd:
             return run_traced_stages(self.cfg, ctx, seg)
         return run_stages(self.cfg, ctx, seg)
 
-    def _choose_nearest(self, batch: SegmentBatch, plain: list[int], counts: list[int], seg: torch.Tensor) -> torch.Tensor:
+    def _choose_nearest(self, batch: SegmentBatch, plain: list[int], counts: list[int], seg: torch.Tensor,
+                        moved: torch.Tensor | None = None) -> torch.Tensor:
         """Of the plain avatars' world segments (counts[n] rows each, in turn), each one's: its only
         row, or the candidate that ends nearest where it is asked to be: a reaching avatar's target,
-        else where its velocity goal's path takes the pelvis from x0."""
+        else where its velocity goal's path takes the pelvis from x0 (neither: anywhere), plus how
+        far the walls moved it (moved (rows,) m, _slid; None: nothing moved)."""
         per = torch.tensor(counts)
         start = per.cumsum(0) - per
         chosen = start.clone()
         many = [n for n, c in enumerate(counts) if c > 1]
         K = max(counts)
         idx = start[many][:, None] + torch.arange(K)[None] % per[many][:, None]
-        wanted = torch.empty(len(many), 2, dtype=torch.float64)
+        wanted = torch.full((len(many), 2), float("nan"), dtype=torch.float64)
         reaching = torch.tensor([_reaching(batch, plain[n]) for n in many])
+        goal = torch.tensor([batch.v_goal[plain[n]] is not None and not reaching[m] for m, n in enumerate(many)])
         for m, n in enumerate(many):
             if reaching[m]:
                 wanted[m] = batch.targets[plain[n]].double()
-        if not reaching.all():
-            g = torch.tensor([plain[n] for m, n in enumerate(many) if not reaching[m]])
+        if goal.any():
+            g = torch.tensor([plain[n] for m, n in enumerate(many) if goal[m]])
             x0 = batch.x0[g].double()
             v = torch.stack([batch.v_goal[int(k)].double() for k in g])
             path = goal_trajectory(x0, v, None, seg.shape[1], self.cfg.trajectory_halflife)[..., :2]  # (G, N, 2)
             pelvis0 = x0[:, SLICES["joints"]].reshape(len(g), 22, 3)[:, 0, [0, 2]]
-            wanted[~reaching] = pelvis0 + path[:, -1] - trajectory_of(x0[:, None])[:, 0, :2]
-        chosen[many] = idx[torch.arange(len(many)), nearest_candidate(seg[idx], wanted)]
+            wanted[goal] = pelvis0 + path[:, -1] - trajectory_of(x0[:, None])[:, 0, :2]
+        penalty = None if moved is None else moved[idx]
+        chosen[many] = idx[torch.arange(len(many)), nearest_candidate(seg[idx], wanted, penalty)]
         return seg[chosen]
 
     def _candidate_counts(self, batch: SegmentBatch, phys: list[int]) -> list[int]:

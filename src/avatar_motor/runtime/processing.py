@@ -478,10 +478,13 @@ def physical_faults(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor) 
     return out
 
 
-def nearest_candidate(cands: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+def nearest_candidate(cands: torch.Tensor, targets: torch.Tensor, penalty: torch.Tensor | None = None) -> torch.Tensor:
     """Index (P,) of the candidate segment, of K (P, K, N, 267) each avatar's sampler drew, whose
     pelvis ends nearest that avatar's target (P, 2) on the ground (x, z), in the same frame as
     the segments: best-of-K sampling for a reaching avatar. Its end, not its nearest frame: the
-    next segment starts there, and a body that passes the target is not at it."""
+    next segment starts there, and a body that passes the target is not at it. penalty (P, K) m:
+    added to each candidate's distance (a NaN target: the penalty alone decides)."""
     end = joints_of(cands[:, :, -1])[..., 0, :][..., [0, 2]]  # (P, K, 2)
-    return (end - targets[:, None].to(end.dtype)).norm(dim=-1).argmin(1)
+    d = (end - targets[:, None].to(end.dtype)).norm(dim=-1)
+    d = torch.nan_to_num(d, nan=0.0)
+    return (d if penalty is None else d + penalty.to(d.dtype)).argmin(1)
