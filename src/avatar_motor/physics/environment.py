@@ -271,7 +271,7 @@ def slide_out_of_boxes(J: torch.Tensor, before: torch.Tensor, radius: torch.Tens
 
     # the shift stays zero until a frame as the model made it meets a box: only such bodies are
     # stepped through (the others cost one test of all their frames at once)
-    raw = torch.einsum("btnjk,nkl->btnjl", J[:, :, None] - c[None, None, :, None], R)
+    raw = local(J.flatten(0, 1)).unflatten(0, (B, T))
     raw_prev = torch.cat((local(before.to(J.dtype))[:, None], raw[:, :-1]), 1)
     hit = meets(raw, raw_prev).flatten(1).any(-1)
     if not bool(hit.any()):
