@@ -8,8 +8,8 @@ import torch
 
 from avatar_motor.body.motion_state import unpack
 from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, rest_offsets
-from avatar_motor.physics.environment import (Box, Environment, Ground, lift_above, project_box, push_out_of_boxes,
-                                              slide_out_of_boxes, touching)
+from avatar_motor.physics.environment import (Box, Environment, Ground, aim_round, footprints, lift_above, project_box,
+                                              push_out_of_boxes, route, slide_out_of_boxes, touching)
 from avatar_motor.physics.solver import (BONES, COLLISION_RADIUS, H, REST_HEIGHT, Candidates, PhysicsConfig, com_pull,
                                          energies, prepare, project_bones, project_ground, solve_global, step)
 from avatar_motor.runtime.crowd import standing_state
@@ -166,6 +166,131 @@ def test_a_body_the_model_moves_alone_is_stopped_by_a_wall_slides_along_one_at_a
     swung[0, H, 2] = 1.0 + 0.05 + float(r[H]) + 0.01  # the hand 1 cm behind the wall the next frame
     shift = slide_out_of_boxes(swung[:, None], before, r, Environment(boxes=(wall,)))
     assert float(swung[0, H, 2] + shift[0, 0, 2]) == pytest.approx(1.0 - 0.05 - float(r[H]), abs=1e-9)  # at the near face
+
+
+def test_an_arm_round_a_walls_end_moves_the_body_off_the_end_not_to_and_fro():
+    """A body beyond a thin wall's end with its arm wrapped round it (the shoulder came into the
+    wall from one side, the elbow from the other, the hand beyond the far face): pushing each
+    sphere out by its own face pushes the body to and fro and leaves it in the wall. It leaves along
+    the wall, past its end, by the least that frees every sphere, and nothing is taken through."""
+    r = COLLISION_RADIUS
+    wall = Box((0.0, 0.0), (2.0, 1.5, 0.1))  # x in [-1, 1], z in [-0.05, 0.05]
+    S, E, W = (JOINT_INDEX[n] for n in ("right_shoulder", "right_elbow", "right_wrist"))
+    J0 = _standing(1)[0]
+    before = J0 - J0[:, :1] * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64) + torch.tensor([1.6, 0.0, 0.0], dtype=torch.float64)
+    now = before.clone()
+    for j, z_before, z_now in ((S, 0.25, 0.03), (E, -0.25, -0.03), (W, -0.3, -0.25)):
+        before[0, j] = torch.tensor([0.85, 1.0, z_before], dtype=torch.float64)
+        now[0, j] = torch.tensor([0.85, 1.0, z_now], dtype=torch.float64)
+    shift = slide_out_of_boxes(now[:, None], before, r, Environment(boxes=(wall,)))[0, 0]
+    moved = now + shift
+    assert not _inside(moved[:, None], wall, r).any()
+    assert float(shift[2]) == 0.0 and float(shift[0]) == pytest.approx(1.0 + float(r[[S, E, W]].max()) - 0.85, abs=1e-9)
+
+
+def test_the_shortest_way_round_obstacles_keeps_the_clearance_and_bends_only_at_corners():
+    wall = Box((0.0, 2.0), (3.0, 1.5, 0.1))
+    env = Environment(boxes=(wall,))
+    assert torch.equal(route((0.0, 0.0), (3.0, 0.0), env, 0.5), torch.tensor([[0.0, 0.0], [3.0, 0.0]], dtype=torch.float64))
+    assert torch.equal(route((0.0, 0.0), (0.0, 4.0), Environment(), 0.5)[-1], torch.tensor([0.0, 4.0], dtype=torch.float64))
+    way = route((0.4, 0.0), (0.4, 4.0), env, 0.5)  # the wall's +x end is the nearer
+    assert len(way) == 4 and torch.equal(way[0], torch.tensor([0.4, 0.0], dtype=torch.float64))
+    assert torch.allclose(way[1:3], torch.tensor([[2.01, 1.44], [2.01, 2.56]], dtype=torch.float64))
+    # every leg keeps the clearance: points along it are outside the grown footprint
+    c, A, h = footprints(env, 0.5)
+    t = torch.linspace(0, 1, 101, dtype=torch.float64)[:, None]
+    for p, q in zip(way[:-1], way[1:]):
+        local = (p + t * (q - p) - c[0]) @ A[0]
+        assert not bool((local.abs() < h[0] - 1e-6).all(-1).any())
+    # a body already against the wall (within the clearance) still finds its way round
+    assert len(route((0.4, 1.8), (0.4, 4.0), env, 0.5)) == 4
+    # round a turned wall and between two boxes the way is no longer than the best corner path
+    two = Environment(boxes=(Box((-1.0, 2.0), (1.6, 1.0, 0.2)), Box((1.0, 2.0), (1.6, 1.0, 0.2))))
+    way = route((0.0, 0.0), (0.0, 4.0), two, 0.3)  # through the 40 cm gap? no: it needs 60 cm
+    assert len(way) == 4 and float(way[1:3, 0].abs().min()) > 1.8 - 1e-6
+    assert len(route((0.0, 0.0), (0.0, 4.0), two, 0.15)) == 2  # with 15 cm clearance the gap is open
+    # a goal walled in on every side: straight at it (the walls hold the body)
+    ring = Environment(boxes=tuple(Box(cz, sz) for cz, sz in (((0.0, 5.0), (3.0, 1.0, 0.2)), ((0.0, 3.0), (3.0, 1.0, 0.2)),
+                                                                ((-1.5, 4.0), (0.2, 1.0, 2.2)), ((1.5, 4.0), (0.2, 1.0, 2.2)))))
+    assert len(route((0.0, 0.0), (0.0, 4.0), ring, 0.3)) == 2
+
+
+def test_a_body_heads_for_a_point_along_its_way_round_an_obstacle():
+    """aim_round: the point 3 m along the way round the wall, unless the line to it cuts through
+    the footprint grown by half the clearance: then the way's first corner."""
+    from avatar_motor.physics.environment import _crossing
+    env = Environment(boxes=(Box((0.0, 2.0), (3.0, 1.5, 0.1)),))
+    c, A, h = footprints(env, 0.25)
+    kinds = set()
+    for start in ((0.0, 0.0), (0.0, -3.0), (2.3, 0.5), (-1.0, 1.0)):
+        s = torch.tensor(start, dtype=torch.float64)
+        aim, direct = aim_round(start, (0.0, 4.0), env, 0.5, 3.0)
+        way = route(start, (0.0, 4.0), env, 0.5)
+        assert not direct and len(way) > 2
+        if torch.allclose(aim, way[1]) and float(way[1].sub(s).norm()) < 3.0 - 1e-6:
+            kinds.add("corner")
+            legs = (way[1:] - way[:-1]).norm(dim=-1).cumsum(0)
+            k = int((legs < 3.0).sum())
+            along = way[k] + (3.0 - float(legs[k - 1])) / float(legs[k] - legs[k - 1]) * (way[k + 1] - way[k])
+            assert bool(_crossing(s[None], along[None], c, A, h).any())  # the 3 m point was behind the corner
+        else:
+            kinds.add("along")
+            assert not bool(_crossing(s[None], aim[None], c, A, h).any())
+            # on the way, 3 m along it
+            d = ((way[:-1, None] - aim) .norm(dim=-1) + (way[1:, None] - aim).norm(dim=-1) - (way[1:] - way[:-1]).norm(dim=-1)[:, None])
+            k = int(d[:, 0].argmin())
+            assert float(d[k]) < 1e-9
+            assert float((way[1:k + 1] - way[:k]).norm(dim=-1).sum() + (aim - way[k]).norm()) == pytest.approx(3.0, abs=1e-9)
+    assert kinds == {"corner", "along"}
+    aim, direct = aim_round((0.0, 0.0), (3.0, 0.0), env, 0.5, 3.0)
+    assert direct and torch.equal(aim, torch.tensor([3.0, 0.0], dtype=torch.float64))
+    assert aim_round((0.0, 0.0), (0.0, 4.0), env, 0.0, 3.0)[1]  # clearance 0: no routing
+
+
+def test_a_reaching_avatar_is_aimed_round_a_wall_and_stopped_only_at_its_target(tmp_path):
+    """The crowd gives a reaching avatar's segment (its target condition, its facing goal) the
+    point aim_round picks when a wall stands between it and its target, and no arrival goal there."""
+    from avatar_motor.model.adaptor import AdaptedDenoiser, AdaptorConfig
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+    ad = AdaptedDenoiser(motor.net, AdaptorConfig(control="target")).eval()
+    crowd = Crowd(motor, RuntimeConfig(), adaptors=ad)
+    i = crowd.spawn(position=(0.0, 0.0))
+    a = crowd.avatars[i]
+    crowd.set_target(i, (0.0, 4.0))
+    assert torch.equal(crowd._aim(a)[0], a.target)  # nothing in the way
+    crowd.add_obstacle((0.0, 2.0), (3.0, 1.5, 0.1))
+    pelvis = crowd._pelvis_xz(a)
+    want, _ = aim_round(pelvis, a.target, crowd.environment, crowd.cfg.route_clearance, crowd.cfg.route_lookahead)
+    aim, direct = crowd._aim(a)
+    assert not direct and torch.allclose(aim.double(), want, atol=1e-6)
+    batch = crowd.prepare(10 ** 6)
+    assert torch.allclose(batch.targets[0].double(), want, atol=1e-6)
+    assert torch.allclose(batch.facing_goal[0][[0, 2]].double(), (want - pelvis) / (want - pelvis).norm(), atol=1e-5)
+    crowd.set_target(i, (float(pelvis[0]), float(pelvis[1]) + 0.3))  # near and in the open: walked onto it
+    assert crowd._velocity_goal(a, *crowd._aim(a)) is not None
+    assert crowd._velocity_goal(a, want, False) is None  # routed: never an arrival at the aim point
+
+
+def test_the_magnet_without_a_reaching_adaptor_steers_round_a_wall(tmp_path):
+    """The world's own magnet (a velocity goal when no reaching adaptor is served) heads for
+    aim_round's point, at full speed, instead of straight into the wall."""
+    from avatar_motor.serve.world import World
+    from .conftest_models import tiny_motor
+    world = World(tiny_motor(tmp_path))
+    i = world.apply({"type": "spawn"})["avatar"]
+    world.apply({"type": "target", "avatar": i, "position": [0.0, 4.0], "speed": 1.2})
+    pelvis = world.crowd.state(i)[[0, 2]].double()
+    straight = world.crowd.goal_velocity(i)[[0, 2]].double()
+    assert torch.allclose(straight / straight.norm(), (torch.tensor([0.0, 4.0]) - pelvis) / (torch.tensor([0.0, 4.0]) - pelvis).norm(), atol=1e-5)
+    world.apply({"type": "obstacle", "centre": [0.0, 2.0], "size": [3.0, 1.5, 0.1]})
+    world._steer_to_target(i)
+    v = world.crowd.goal_velocity(i)[[0, 2]].double()
+    cfg = world.crowd.cfg
+    aim, direct = aim_round(pelvis, (0.0, 4.0), world.crowd.environment, cfg.route_clearance, cfg.route_lookahead)
+    assert not direct and torch.allclose(v / v.norm(), (aim - pelvis) / (aim - pelvis).norm(), atol=1e-5)
+    assert float(v.norm()) == pytest.approx(1.2, rel=1e-5)
 
 
 def test_an_avatar_not_in_physics_mode_meets_an_obstacle_as_a_wall_and_stays_one_body(tmp_path):

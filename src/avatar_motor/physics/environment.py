@@ -299,8 +299,158 @@ def slide_out_of_boxes(J: torch.Tensor, before: torch.Tensor, radius: torch.Tens
             flat = need.abs().flatten(1).argmax(-1)  # the furthest inside, over boxes and joints
             box, joint = flat // need.shape[2], flat % need.shape[2]
             d = need[rows, box, joint]
-            ax = side_axes[axis[rows, box, joint, 0]]
+            ax_k = axis[rows, box, joint, 0]
+            # a body whose spheres came into that box by different faces (an arm round a wall's
+            # end: the shoulder on one side, the elbow in the wall, the hand beyond it) would be
+            # pushed to and fro: it moves along the one box axis, and by the least, that leaves
+            # every sphere in the box's span on the other axes on one side of it
+            ins = inside[rows, box]  # (B, 22)
+            face = axis[rows, box, :, 0] * 2 + (side[rows, box, :, 0] > 0).long()  # (B, 22)
+            mixed = ((face != face[rows, joint][:, None]) & ins).any(-1)
+            if bool(mixed.any()):
+                qb, eb = q[rows, box], e[box]  # (B, 22, 3)
+                within = qb.abs() < eb
+                clear = []
+                for k, others in ((0, [1, 2]), (2, [0, 1])):
+                    span = within[..., others].all(-1)  # (B, 22)
+                    for sg in (1.0, -1.0):  # leaving by the box's - face, then by its + face
+                        clear.append(torch.where(span, eb[..., k] + sg * qb[..., k], torch.zeros_like(qb[..., k])).amax(1).clamp_min(0))
+                clear = torch.stack(clear, -1)  # (B, 4): -X, +X, -Z, +Z
+                # of these, the least that leaves no sphere inside nor taken through a box since
+                # the frame before (a whole body moved across a thin wall is no way out either)
+                sign = torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=J.dtype)
+                way = (clear * sign)[..., None] * R[box][:, :, side_axes].repeat_interleave(2, -1).transpose(1, 2)  # (B, 4, 3)
+                moved = J[:, t, None] + (s[:, None] + way)[:, :, None]  # (B, 4, 22, 3)
+                stuck = meets(local(moved.flatten(0, 1)), qp.repeat_interleave(4, 0)).flatten(1).any(-1).view(B, 4)
+                best = (clear + 1e3 * stuck).argmin(-1)
+                whole = clear[rows, best] * torch.where(best % 2 == 1, 1.0, -1.0).to(J.dtype)
+                d = torch.where(mixed, whole, d)
+                ax_k = torch.where(mixed, best // 2, ax_k)
+            ax = side_axes[ax_k]
             s = s + d[:, None] * R[box, :, ax]  # along that box axis (a column of R) in the world
         shift[:, t] = s
         prev = J[:, t] + s[:, None]
     return shift
+
+
+def footprints(env: Environment, grow: float, dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The boxes' footprints on the floor, each grown by `grow` m on every side: their centres c
+    (n, 2) (x, z), axes A (n, 2, 2) (the box's X and Z as columns, in x, z) and half sizes h (n, 2).
+    A point p is inside one where |(p - c) @ A| < h on both axes."""
+    c = torch.tensor([b.centre for b in env.boxes], dtype=dtype).reshape(-1, 2)
+    A = torch.stack([b.frame(dtype)[0][[0, 2]][:, [0, 2]] for b in env.boxes]) if env.boxes else torch.zeros(0, 2, 2, dtype=dtype)
+    h = torch.tensor([(b.size[0] / 2 + grow, b.size[2] / 2 + grow) for b in env.boxes], dtype=dtype).reshape(-1, 2)
+    return c, A, h
+
+
+def _crossing(p: torch.Tensor, q: torch.Tensor, c: torch.Tensor, A: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """(P, n) bool: the segment from p (P, 2) to q (P, 2) runs through the inside of footprint n, of
+    half sizes h (n, 2), or (P, n, 2) per segment (Liang-Barsky clipping in its frame; running
+    along a side or touching a corner does not count)."""
+    a = torch.einsum("pk,nkl->pnl", p, A) - torch.einsum("nk,nkl->nl", c, A)[None]  # (P, n, 2)
+    d = torch.einsum("pk,nkl->pnl", q - p, A)
+    lo = torch.zeros(a.shape[:2], dtype=p.dtype)
+    hi = torch.ones(a.shape[:2], dtype=p.dtype)
+    inner = (h if h.dim() == 3 else h[None]) - 1e-6
+    for k in range(2):
+        dk, ak = d[..., k], a[..., k]
+        still = dk.abs() < 1e-12
+        # parallel to this axis: through only if already between its two sides
+        outside = still & (ak.abs() >= inner[..., k])
+        t1 = torch.where(still, torch.full_like(ak, -1e9), (-inner[..., k] - ak) / torch.where(still, torch.ones_like(dk), dk))
+        t2 = torch.where(still, torch.full_like(ak, 1e9), (inner[..., k] - ak) / torch.where(still, torch.ones_like(dk), dk))
+        lo = torch.maximum(lo, torch.minimum(t1, t2))
+        hi = torch.minimum(hi, torch.maximum(t1, t2))
+        hi = torch.where(outside, torch.full_like(hi, -1.0), hi)
+    return hi - lo > 1e-9
+
+
+def route(start, goal, env: Environment, clearance: float) -> torch.Tensor:
+    """(P, 2): the shortest way on the floor from `start` to `goal` (x, z) that keeps `clearance` m
+    from every box's footprint: start, the corners of the grown footprints it goes round, goal
+    (a visibility graph: shortest paths round convex obstacles bend only at their corners). Just
+    (start, goal) when the straight line is clear, when no box stands between them, or when the
+    goal is walled in. An end within clearance of a box (a body against a wall, a target next to
+    one) is joined to the graph past that box's own footprint only, so it is not cut off."""
+    s = torch.as_tensor(start, dtype=torch.float64).reshape(2)
+    g = torch.as_tensor(goal, dtype=torch.float64).reshape(2)
+    direct = torch.stack((s, g))
+    if not env.boxes:
+        return direct
+    c, A, h = footprints(env, clearance)
+    _, _, h0 = footprints(env, 0.0)
+
+    def inside(p, half, margin=0.0):  # (P, n)
+        q = torch.einsum("pk,nkl->pnl", p, A) - torch.einsum("nk,nkl->nl", c, A)[None]
+        return (q.abs() < half[None] - margin).all(-1)
+
+    ends = torch.stack((s, g))
+    held = inside(ends, h)  # (2, n): an end within clearance of footprint n
+    if not bool(_crossing(s[None], g[None], c, A, torch.where(held.any(0)[:, None], h0, h)).any()):
+        return direct
+    # the grown footprints' corners, 1 cm further out so that a path round one is not inside it
+    signs = torch.tensor([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]], dtype=torch.float64)
+    local = signs[None] * (h + 0.01)[:, None]  # (n, 4, 2)
+    corners = (c[:, None] + torch.einsum("nkl,nml->nmk", A, local)).reshape(-1, 2)
+    corners = corners[~inside(corners, h).any(-1)]  # a corner inside another box's grown footprint is no way
+    nodes = torch.cat((ends, corners))  # 0: start, 1: goal
+    P = len(nodes)
+    i, j = torch.triu_indices(P, P, 1)
+    # an edge leaving an end that is within clearance of a box only has to miss that box's own footprint
+    half = h[None].expand(len(i), -1, -1).clone()
+    for e in range(2):
+        at_end = (i == e) | (j == e)
+        half[at_end] = torch.where(held[e][None, :, None], h0[None], half[at_end])
+    a, b = nodes[i], nodes[j]
+    blocked = _crossing(a, b, c, A, half).any(-1)
+    w = torch.full((P, P), math.inf, dtype=torch.float64)
+    length = (a - b).norm(dim=-1)
+    w[i[~blocked], j[~blocked]] = length[~blocked]
+    w[j[~blocked], i[~blocked]] = length[~blocked]
+    # Dijkstra from the start (a few dozen nodes)
+    dist = torch.full((P,), math.inf, dtype=torch.float64)
+    prev = torch.full((P,), -1, dtype=torch.long)
+    dist[0] = 0.0
+    done = torch.zeros(P, dtype=torch.bool)
+    for _ in range(P):
+        u = int(torch.where(done, torch.full_like(dist, math.inf), dist).argmin())
+        if done[u] or not math.isfinite(float(dist[u])):
+            break
+        done[u] = True
+        if u == 1:
+            break
+        alt = dist[u] + w[u]
+        better = alt < dist
+        dist = torch.where(better, alt, dist)
+        prev = torch.where(better, torch.full_like(prev, u), prev)
+    if not math.isfinite(float(dist[1])):
+        return direct  # walled in: walk at it, the walls hold the body
+    way = [1]
+    while way[-1] != 0:
+        way.append(int(prev[way[-1]]))
+    return nodes[way[::-1]]
+
+
+def aim_round(start, goal, env: Environment, clearance: float, lookahead: float) -> tuple[torch.Tensor, bool]:
+    """Where to head for `goal` (x, z) from `start` with obstacles about: the goal itself, True,
+    when the straight way is open (route); else, False, the point `lookahead` m along the way
+    (pure pursuit: a body heading there turns round the corner as it nears it instead of
+    slowing to arrive at it), or the way's first corner if the line to that point would cut
+    through a box's footprint grown by half the clearance. clearance <= 0: the goal, True (no
+    routing)."""
+    s = torch.as_tensor(start, dtype=torch.float64).reshape(2)
+    g = torch.as_tensor(goal, dtype=torch.float64).reshape(2)
+    if clearance <= 0 or not env.boxes:
+        return g, True
+    way = route(s, g, env, clearance)
+    if len(way) == 2:
+        return g, True
+    legs = (way[1:] - way[:-1]).norm(dim=-1)
+    ends = legs.cumsum(0)
+    k = min(int((ends < lookahead).sum()), len(legs) - 1)  # the leg the point lies on
+    into = (lookahead - (float(ends[k - 1]) if k else 0.0)) / max(float(legs[k]), 1e-9)
+    point = way[k] + min(max(into, 0.0), 1.0) * (way[k + 1] - way[k])
+    c, A, h = footprints(env, clearance / 2)
+    if bool(_crossing(s[None], point[None], c, A, h).any()):
+        return way[1], False
+    return point, False

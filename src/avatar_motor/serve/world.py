@@ -19,6 +19,7 @@ from ..body import rotations as rot
 from ..body.skeleton import JOINT_NAMES
 from ..body.motion_state import FPS, unpack
 from ..model.checkpoint import Motor
+from ..physics.environment import aim_round
 from ..runtime.crowd import IMPULSE_PRESETS, Crowd, RuntimeConfig
 from ..runtime.sampler import Cancelled
 from . import protocol as P
@@ -218,7 +219,10 @@ class World:
     def _steer_to_target(self, i: int) -> None:
         """The magnet: a goal velocity towards the target, slowing within a metre of it."""
         tg = self.targets[i]
-        d = tg.position - self.crowd.state(i)[[0, 2]]
+        pelvis = self.crowd.state(i)[[0, 2]]
+        cfg = self.crowd.cfg
+        aim, _ = aim_round(pelvis, tg.position, self.crowd.environment, cfg.route_clearance, cfg.route_lookahead)
+        d = (aim - pelvis.double()).to(tg.position.dtype)  # round an obstacle in the way
         cur = self.crowd.goal_velocity(i)
         dist = float(d.norm())
         if dist < 0.25:
