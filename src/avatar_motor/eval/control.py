@@ -186,9 +186,12 @@ def format_impulses(rows, what, n, seconds, body: dict) -> str:
 
 
 # ---------------------------------------------------------------- bench
-def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, seed: int = 0, reaching=None) -> Crowd:
+def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, seed: int = 0, reaching=None,
+                  walls: bool = False) -> Crowd:
     """A warmed crowd of `avatars` walking toward a goal (or free), as bench times it; with
-    `reaching` (a reaching adaptor, in a list) each walks to a target instead (the magnet)."""
+    `reaching` (a reaching adaptor, in a list) each walks to a target instead (the magnet). walls:
+    a row of walls 1 m ahead of the crowd, 3 m wide each (every avatar near one, its targets
+    behind them)."""
     crowd = Crowd(motor, cfg, seed, adaptors=reaching)
     ids = [crowd.spawn(position=(k, 0.0)) for k in range(avatars)]
     for k, i in enumerate(ids):
@@ -196,6 +199,9 @@ def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, se
             crowd.set_target(i, (k + 3.0, 2.0))  # far enough that none arrives within the timed segments
         elif goal:
             crowd.set_goal(i, (1.0, 0.5))
+    if walls:
+        for x in range(0, avatars, 3):
+            crowd.add_obstacle((x + 1.0, 1.0), (3.0, 1.5, 0.1))
     if motor.net.cfg.persona:  # a persona model is timed with a different character for each avatar
         from ..data.personas import DESCRIPTIONS
         texts = [d for lab in sorted(DESCRIPTIONS) for d in DESCRIPTIONS[lab]]
@@ -207,18 +213,20 @@ def _timing_crowd(motor: Motor, cfg: RuntimeConfig, avatars: int, goal: bool, se
 
 
 def _timed(crowd: Crowd, segments: int) -> list[dict]:
-    """crowd.timings of each of `segments` more segments."""
+    """crowd.timings of each of `segments` more segments, and "step": the whole step (with the
+    segment's preparation: the routes round obstacles, the walls' tests of queued frames)."""
     out = []
     for _ in range(segments):
+        t0 = time.perf_counter()
         crowd.step_segment()
-        out.append(dict(crowd.timings))
+        out.append(dict(crowd.timings, step=time.perf_counter() - t0))
     return out
 
 
 def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int, goal: bool, seed: int = 0,
-                   reaching=None) -> dict:
+                   reaching=None, walls: bool = False) -> dict:
     """Mean timings of `segments` segments of a fresh crowd (_timing_crowd)."""
-    runs = _timed(_timing_crowd(motor, cfg, avatars, goal, seed, reaching), segments)
+    runs = _timed(_timing_crowd(motor, cfg, avatars, goal, seed, reaching, walls), segments)
     return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0]}
 
 
@@ -306,6 +314,17 @@ def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 25
             break
         n *= 2
     out.append(f"largest crowd kept in real time (>= 30 frames/s each): {best} avatars (tested powers of two)")
+    # among obstacles: each avatar near one draws wall_candidates segments and is slid out of the walls
+    out.append(f"crowd among obstacles (a row of walls 1 m ahead, the goal above; {default.wall_candidates} candidates "
+               "each near a wall, frames slid out of the walls): avatars, ms per whole step, real-time factor")
+    best, n = 0, 1
+    while n <= max_avatars:
+        t = _time_segments(motor, default, n, 3, True, seed, walls=True)["step"]
+        out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
+        if t > 0.5:
+            break
+        best, n = n, n * 2
+    out.append(f"largest crowd among obstacles kept in real time: {best} avatars (tested 1, 2, 4, ...)")
     reaching = [ad for ad in adaptors or [] if ad.cfg.control == "target"]
     if reaching:  # the magnet: each avatar draws reach_candidates segments, the adaptor guided against the base
         out.append(f"reaching (the magnet, {reaching[0].name}; "
@@ -318,6 +337,15 @@ def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 25
                 break
             best, n = n, n * 2
         out.append(f"largest reaching crowd kept in real time: {best} avatars (tested 1, 2, 4, ...)")
+        out.append("reaching round the walls above (each target behind one: the way routed every segment)")
+        best, n = 0, 1
+        while n <= max_avatars:
+            t = _time_segments(motor, default, n, 3, False, seed, reaching, walls=True)["step"]
+            out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
+            if t > 0.5:
+                break
+            best, n = n, n * 2
+        out.append(f"largest reaching crowd among obstacles kept in real time: {best} avatars (tested 1, 2, 4, ...)")
     # reaction latency: a command interrupts the queue; the next frame comes from a fresh segment
     crowd = Crowd(motor, default, seed)
     i = crowd.spawn()
