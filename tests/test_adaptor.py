@@ -596,6 +596,10 @@ def test_scale_above_one_is_classifier_free_guidance(kind, control):
         for gamma in (1.5, 3.0):
             assert torch.allclose(m(t, x, x0, y, scale=gamma), null + gamma * (cond - null), atol=1e-5)
         assert torch.allclose(m(t, x, x0, y, scale=1.0 + 1e-6), cond, atol=1e-4)
+        # rows guided and not in one batch (the null control's pass joins the rows' own) read as alone
+        mixed = m(t, x, x0, y, scale=torch.tensor([0.5, 1.0, 2.5]).view(3, 1, 1))
+        for k, s in enumerate([0.5, 1.0, 2.5]):
+            assert torch.allclose(mixed[k], m(t[k:k + 1], x[k:k + 1], x0[k:k + 1], y[k:k + 1], scale=s)[0], atol=1e-5)
 
 
 def test_neighbour_swap_partners_are_near_states_of_other_clips():

@@ -109,6 +109,17 @@ class AdaptedDenoiser(nn.Module):
         trained it) or the nearest other label's (see _negative): one more pass, for the rows that ask for it."""
         s = torch.as_tensor(scale, dtype=x_t.dtype).reshape(-1, 1, 1).expand(len(x_t), 1, 1)
         guided = (s > 1).flatten()
+        if guided.any() and self._null_negative:
+            # the null control's pass in the same batch as the rows' own: one network call (a
+            # reaching avatar's 4 candidates at 8 steps: 38 -> 28 ms a step here, batch 4 + 4)
+            r, B = guided.nonzero()[:, 0], len(t)
+            d = torch.zeros(B, dtype=torch.bool) if drop is None else drop
+            both = self._forward(torch.cat((t, t[r])), torch.cat((x_t, x_t[r])), torch.cat((x0, x0[r])),
+                                 torch.cat((y, y[r])), torch.cat((s.clamp(max=1.0), torch.ones_like(s[r]))),
+                                 torch.cat((d, torch.ones(len(r), dtype=torch.bool))))
+            out = both[:B].clone()
+            out[r] = out[r] + (s[r] - 1) * (out[r] - both[B:])
+            return out
         out = self._forward(t, x_t, x0, y, s.clamp(max=1.0), drop)
         if guided.any():
             r = guided.nonzero()[:, 0]
@@ -120,6 +131,13 @@ class AdaptedDenoiser(nn.Module):
         """The control scale a command gets: its own, or (None) this adaptor's default_scale."""
         return self.default_scale if scale is None else scale
 
+    @property
+    def _null_negative(self) -> bool:
+        """Guidance steers away from the null control (_negative)."""
+        if self.guidance not in ("nearest", "null"):
+            raise ValueError(f"adaptor guidance must be 'nearest' or 'null', not {self.guidance!r}")
+        return self.guidance == "null" or self.cfg.control != "label" or len(self.cfg.labels) < 2
+
     def _negative(self, t, x_t, x0, y, cond: torch.Tensor) -> torch.Tensor:
         """What guidance steers away from: the null control (PRIMAL's Eq. 3), or with guidance
         "nearest" (label adaptors) the prediction of the other label nearest to this label's own
@@ -127,9 +145,7 @@ class AdaptedDenoiser(nn.Module):
         continues the current state while a label turns it into the action, so G(y) - G(null) also
         holds that departure and amplifying it slides the feet; every label departs alike, so the
         difference to the closest rival holds what tells y from the label it would be taken for."""
-        if self.guidance not in ("nearest", "null"):
-            raise ValueError(f"adaptor guidance must be 'nearest' or 'null', not {self.guidance!r}")
-        if self.guidance == "null" or self.cfg.control != "label" or len(self.cfg.labels) < 2:
+        if self._null_negative:
             return self._forward(t, x_t, x0, y, 1.0, torch.ones(len(t), dtype=torch.bool))
         n, B = len(self.cfg.labels), len(t)
         others = (y[:, None] + torch.arange(1, n)[None]).remainder(n).flatten()  # (B * (n - 1),)
