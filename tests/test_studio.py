@@ -6,6 +6,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+import torch
 
 from avatar_motor.eval.studio_bench import ARGS
 from avatar_motor.runtime.crowd import RuntimeConfig
@@ -332,6 +333,49 @@ def test_physics_in_the_studio(tmp_path, artifacts):
         assert not world.crowd.avatars[0].physics
         off = largest_step(2.0)
         assert off < 0.25, off  # switching off continues from the frame shown
+
+
+@pytest.mark.slow  # about a minute: the shipped family's reaching avatar and the page in software GL
+@needs_chromium
+def test_the_magnet_behind_a_wall_in_the_studio(artifacts):
+    """The shipped family served: a wall between the avatar and the magnet (the protocol's
+    `obstacle` and `target`, as any client sends them). The avatar walks round the wall's end to
+    the magnet, and no joint of the body streamed goes into the wall; every client draws the wall."""
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.cli import DEFAULT_MODEL, MODELS
+    from avatar_motor.model.adaptor import default_adaptors
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from avatar_motor.physics.solver import COLLISION_RADIUS
+
+    motor = load_checkpoint(DEFAULT_MODEL)
+    adaptors = default_adaptors(motor, MODELS)
+    if not any(ad.cfg.control == "target" for ad in adaptors):
+        pytest.fail(f"models/ ships no reaching adaptor for {motor.name}'s base")
+    world = World(motor, RuntimeConfig(), seed=0, adaptors=adaptors)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+        px, _, pz = page.evaluate("window.studio.pelvis(0)")
+        world.apply({"type": "obstacle", "centre": [px, pz + 2.0], "size": [3.0, 1.5, 0.1]})
+        world.apply({"type": "target", "avatar": 0, "position": [px, pz + 4.0]})
+        (box,) = world.crowd.environment.boxes
+        assert not world.crowd.avatars[0].physics  # placed by the protocol: the avatar stays the model's
+        page.wait_for_function("window.studio.environment && window.studio.environment.obstacles.length === 1", timeout=10000)
+        target = torch.tensor([px, pz + 4.0], dtype=torch.float64)
+        deepest, widest, nearest, end = 0.0, 0.0, 9.0, time.time() + 12
+        shot = False
+        while time.time() < end and nearest > 0.3:
+            with world.lock:
+                J = joints_of(world.crowd.state(0).double())
+            q, e, _, _ = box.local(J, COLLISION_RADIUS)
+            deepest = max(deepest, float((e - q.abs()).amin(-1).clamp(min=0).max()))
+            widest = max(widest, abs(float(J[0, 0]) - px))
+            nearest = min(nearest, float((J[0, [0, 2]] - target).norm()))
+            if not shot and float(J[0, 2]) > pz + 2.0:  # past the wall: a picture of it going round
+                page.screenshot(path=str(artifacts / "studio-magnet-wall.png"))
+                shot = True
+            time.sleep(0.02)
+        assert nearest < 0.3, f"the avatar came only {nearest:.2f} m near the magnet behind the wall"
+        assert widest > 1.5, "it got there without going round the wall's end"
+        assert deepest < 0.005, f"a joint went {deepest * 100:.1f} cm into the wall"
 
 
 @needs_chromium
