@@ -128,6 +128,18 @@ def test_studio_offers_the_labels_of_its_adaptors(tmp_path):
         assert world.crowd.avatars[0].label is None
 
 
+def settle(page, within: float, seconds: float = 8.0) -> None:
+    """Wait (up to `seconds`) until the page's avatar 0 stands still: its pelvis moves less than
+    `within` m in half a second."""
+    deadline = time.time() + seconds
+    while time.time() < deadline:
+        p0 = page.evaluate("window.studio.pelvis(0)")
+        time.sleep(0.5)
+        p1 = page.evaluate("window.studio.pelvis(0)")
+        if sum((a - b) ** 2 for a, b in zip(p0, p1)) ** 0.5 < within:
+            return
+
+
 @needs_chromium
 def test_shipped_family_in_the_studio():
     """What `make studio` serves out of the box: the default model with the adaptors shipped in
@@ -266,13 +278,7 @@ def test_physics_in_the_studio(tmp_path, artifacts):
 
         # thrown at a body standing still: the page aims at the chest it last drew, and at 3-4
         # frames/s a body stepping about had moved on (a miss by 0.51 m in one CI run of five)
-        deadline = time.time() + 8
-        while time.time() < deadline:
-            p0 = page.evaluate("window.studio.pelvis(0)")
-            time.sleep(0.5)
-            p1 = page.evaluate("window.studio.pelvis(0)")
-            if sum((a - b) ** 2 for a, b in zip(p0, p1)) ** 0.5 < 0.03:
-                break
+        settle(page, 0.03)
         chest0 = page.evaluate(f"window.studio.joints(0).slice({3 * JOINT_INDEX['spine3']}, {3 * JOINT_INDEX['spine3'] + 3})")
         watcher = threading.Thread(target=watch, daemon=True)
         watcher.start()
@@ -299,13 +305,7 @@ def test_physics_in_the_studio(tmp_path, artifacts):
         # the hand pulled by a spring while dragged
         # the knocked body settles (a body still stepping off the hit can carry the grabbed part
         # away from the pointer faster than the spring pulls it: seen once in three CI runs)
-        deadline = time.time() + 8
-        while time.time() < deadline:
-            p0 = page.evaluate("window.studio.pelvis(0)")
-            time.sleep(0.5)
-            p1 = page.evaluate("window.studio.pelvis(0)")
-            if sum((a - b) ** 2 for a, b in zip(p0, p1)) ** 0.5 < 0.05:
-                break
+        settle(page, 0.05)
         # the hand first; the page (3-4 frames/s here) is slow to say where it is while it moves,
         # so a miss tries a larger part (the spring and the mouse path are the same); a part the
         # page would not grab there (moved since, or under a panel) is not clicked
