@@ -230,6 +230,19 @@ def _time_segments(motor: Motor, cfg: RuntimeConfig, avatars: int, segments: int
     return {k: sum(r[k] for r in runs) / len(runs) for k in runs[0]}
 
 
+def _doubling_rows(out: list[str], max_avatars: int, what: str, seconds) -> None:
+    """bench rows for crowds of 1, 2, 4, ... avatars (up to max_avatars) until one misses real time:
+    seconds(n) per 0.5-s segment, and the largest kept in real time."""
+    best, n = 0, 1
+    while n <= max_avatars:
+        t = seconds(n)
+        out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
+        if t > 0.5:
+            break
+        best, n = n, n * 2
+    out.append(f"largest {what} kept in real time: {best} avatars (tested 1, 2, 4, ...)")
+
+
 def _backend_name(cfg: RuntimeConfig) -> str:
     name = cfg.backend if cfg.backend == "torch" else f"onnxruntime {'int8' if cfg.int8_weights else 'float32'}"
     if cfg.bfloat16_from > 0 and bfloat16_units():
@@ -317,35 +330,17 @@ def bench(motor: Motor, segments: int = 20, seed: int = 0, max_avatars: int = 25
     # among obstacles: each avatar near one draws wall_candidates segments and is slid out of the walls
     out.append(f"crowd among obstacles (a row of walls 1 m ahead, the goal above; {default.wall_candidates} candidates "
                "each near a wall, frames slid out of the walls): avatars, ms per whole step, real-time factor")
-    best, n = 0, 1
-    while n <= max_avatars:
-        t = _time_segments(motor, default, n, 3, True, seed, walls=True)["step"]
-        out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
-        if t > 0.5:
-            break
-        best, n = n, n * 2
-    out.append(f"largest crowd among obstacles kept in real time: {best} avatars (tested 1, 2, 4, ...)")
+    _doubling_rows(out, max_avatars, "crowd among obstacles",
+                   lambda n: _time_segments(motor, default, n, 3, True, seed, walls=True)["step"])
     reaching = [ad for ad in adaptors or [] if ad.cfg.control == "target"]
     if reaching:  # the magnet: each avatar draws reach_candidates segments, the adaptor guided against the base
         out.append(f"reaching (the magnet, {reaching[0].name}; "
                    f"{default.reach_candidates} candidate(s) per segment): avatars, ms per segment per batch, real-time factor")
-        best, n = 0, 1
-        while n <= max_avatars:
-            t = _time_segments(motor, default, n, 3, False, seed, reaching)["total"]
-            out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
-            if t > 0.5:
-                break
-            best, n = n, n * 2
-        out.append(f"largest reaching crowd kept in real time: {best} avatars (tested 1, 2, 4, ...)")
+        _doubling_rows(out, max_avatars, "reaching crowd",
+                       lambda n: _time_segments(motor, default, n, 3, False, seed, reaching)["total"])
         out.append("reaching round the walls above (each target behind one: the way routed every segment)")
-        best, n = 0, 1
-        while n <= max_avatars:
-            t = _time_segments(motor, default, n, 3, False, seed, reaching, walls=True)["step"]
-            out.append(f"  {n:4d} avatars {t * 1e3:8.1f} ms  {0.5 / t:5.2f}x real time")
-            if t > 0.5:
-                break
-            best, n = n, n * 2
-        out.append(f"largest reaching crowd among obstacles kept in real time: {best} avatars (tested 1, 2, 4, ...)")
+        _doubling_rows(out, max_avatars, "reaching crowd among obstacles",
+                       lambda n: _time_segments(motor, default, n, 3, False, seed, reaching, walls=True)["step"])
     # reaction latency: a command interrupts the queue; the next frame comes from a fresh segment
     crowd = Crowd(motor, default, seed)
     i = crowd.spawn()

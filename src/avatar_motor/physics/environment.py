@@ -343,11 +343,16 @@ def footprints(env: Environment, grow: float, dtype=torch.float64) -> tuple[torc
     return c, A, h
 
 
+def _in_footprint_frames(p: torch.Tensor, c: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
+    """(P, n, 2): floor points p (P, 2) in the frame of each footprint (footprints' c, A)."""
+    return torch.einsum("pk,nkl->pnl", p, A) - torch.einsum("nk,nkl->nl", c, A)[None]
+
+
 def _crossing(p: torch.Tensor, q: torch.Tensor, c: torch.Tensor, A: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
     """(P, n) bool: the segment from p (P, 2) to q (P, 2) runs through the inside of footprint n, of
     half sizes h (n, 2), or (P, n, 2) per segment (Liang-Barsky clipping in its frame; running
     along a side or touching a corner does not count)."""
-    a = torch.einsum("pk,nkl->pnl", p, A) - torch.einsum("nk,nkl->nl", c, A)[None]  # (P, n, 2)
+    a = _in_footprint_frames(p, c, A)
     d = torch.einsum("pk,nkl->pnl", q - p, A)
     lo = torch.zeros(a.shape[:2], dtype=p.dtype)
     hi = torch.ones(a.shape[:2], dtype=p.dtype)
@@ -378,11 +383,10 @@ def route(start, goal, env: Environment, clearance: float) -> torch.Tensor:
     if not env.boxes:
         return direct
     c, A, h = footprints(env, clearance)
-    _, _, h0 = footprints(env, 0.0)
+    h0 = h - clearance  # the footprints themselves
 
-    def inside(p, half, margin=0.0):  # (P, n)
-        q = torch.einsum("pk,nkl->pnl", p, A) - torch.einsum("nk,nkl->nl", c, A)[None]
-        return (q.abs() < half[None] - margin).all(-1)
+    def inside(p, half):  # (P, n)
+        return (_in_footprint_frames(p, c, A).abs() < half[None]).all(-1)
 
     ends = torch.stack((s, g))
     held = inside(ends, h)  # (2, n): an end within clearance of footprint n
@@ -413,8 +417,9 @@ def route(start, goal, env: Environment, clearance: float) -> torch.Tensor:
     dist[0] = 0.0
     done = torch.zeros(P, dtype=torch.bool)
     for _ in range(P):
-        u = int(torch.where(done, torch.full_like(dist, math.inf), dist).argmin())
-        if done[u] or not math.isfinite(float(dist[u])):
+        left = torch.where(done, torch.full_like(dist, math.inf), dist)
+        u = int(left.argmin())
+        if not math.isfinite(float(left[u])):  # every node left is unreachable
             break
         done[u] = True
         if u == 1:
