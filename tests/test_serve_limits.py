@@ -216,6 +216,20 @@ def test_bench_soak_reports_rate_memory_stalls_nan_and_drift(tmp_path):
     assert "frames with NaN/inf: 0" in report and "idle drift" in report and (tmp_path / "soak.png").stat().st_size > 1000
 
 
+def test_bench_soak_with_the_magnet_moves_the_avatars(tmp_path):
+    """`bench --soak --magnet S`: the served model's reaching adaptor (the shipped family's) is sent
+    a new target every S seconds, and the avatar walks off its start."""
+    from avatar_motor.eval.serve_bench import soak
+    if not (SHIPPED / "model.safetensors").exists():
+        pytest.skip("needs the shipped family (its reaching adaptor)")
+    report = soak(str(SHIPPED), 8.0, avatars=1, clients=1, window=4.0, magnet=1.5)
+    print(report)
+    line = next(x for x in report.splitlines() if "magnet:" in x)
+    assert int(line.split("(")[1].split()[0]) >= 3  # targets sent
+    assert float(line.rsplit(":", 1)[1]) > 0.5  # the pelvis left its start for the targets 3 m off
+    assert "frames with NaN/inf: 0" in report
+
+
 def test_a_notice_is_not_lost_behind_frames_a_slow_client_has_not_taken():
     """Frames queue two deep and a slow reader loses the oldest; a notice (the rate limit's) used
     to go through the same queue and could be lost with them, so the client's error could not

@@ -243,6 +243,60 @@ def test_a_physics_session_replays_bit_for_bit(tmp_path):
     assert (r.recording(0) - runs[1]).abs().max() == 0
 
 
+def test_fit_draws_cuts_the_largest_down_to_one_each():
+    from avatar_motor.runtime.crowd import fit_draws
+    assert fit_draws([4, 1, 4], None) == [4, 1, 4]  # no budget
+    assert fit_draws([4, 1, 4], 9) == [4, 1, 4]  # fits
+    assert fit_draws([4, 1, 4], 8) == [4, 1, 3]  # a tie: the later avatar first
+    assert fit_draws([4, 1, 4], 5) == [2, 1, 2]
+    assert fit_draws([4, 1, 4], 2) == [1, 1, 1]  # never below one draw: the sum stays above
+    for counts in ([4, 4, 1, 2], [1], [3, 8]):
+        for rows in range(0, 17):
+            cut = fit_draws(counts, rows)
+            assert all(1 <= c <= k for c, k in zip(cut, counts))
+            assert sum(cut) == max(min(sum(counts), rows), len(counts))
+
+
+def test_rows_within_the_budget():
+    from avatar_motor.serve.world import rows_within
+    assert rows_within(0.05, 0.0, 15) is None  # budget 0: never cut
+    assert rows_within(0.05, 0.6, 15) == 6  # 0.3 s of a 0.5-s segment at 50 ms a row
+    assert rows_within(0.2, 0.6, 15) == 1
+    assert rows_within(10.0, 0.6, 15) == 1  # at least one
+    assert rows_within(0.0, 0.6, 15) >= 10**4
+
+
+def test_a_served_row_budget_cuts_the_draws_and_replays(tmp_path):
+    """A served world whose rows take long (World.row_seconds, as the generation worker reports
+    them) draws fewer best-of-K candidates in its next batches; the budget is recorded with its
+    frame (script()'s budgets) and a headless replay draws as it did: the same frames, bit for bit."""
+    motor = tiny_motor(tmp_path)
+    cfg = RuntimeConfig(goal_candidates=4, trajectory_halflife=0.2)
+    script = [{"frame": 0, "cmd": {"type": "goal", "avatar": 0, "velocity": [0.0, 1.0]}}]
+
+    def world():
+        w = World(motor, cfg, seed=5)
+        w.apply({"type": "spawn"}, log=False)
+        return w
+
+    w, rows = world(), []
+    for f in range(70):
+        if f == 30:
+            w.row_seconds(0.15)  # 0.3 s of budget: 2 rows
+        w.run_offline(1, script if f == 0 else None)
+        rows.append(w.crowd.timings.get("rows"))
+    assert 4 in rows[:30] and rows[-1] == 2
+    assert w.stats()["max_rows"] == 2
+    rec = w.script()
+    assert rec["budgets"] and rec["budgets"][0]["max_rows"] == 2 and rec["budgets"][0]["frame"] >= 30
+    r = world()
+    r.run_offline(70, rec["events"], rec["budgets"])
+    assert torch.equal(r.recording(0), w.recording(0))
+    plain = world()  # without the budget the frames differ: it was applied
+    plain.run_offline(70, rec["events"])
+    assert not torch.equal(plain.recording(0), w.recording(0))
+
+
 def test_a_command_keeps_the_frames_the_clock_shows_before_its_segment(tmp_path):
     """Served, a command's cut keeps as many queued frames as ticks pass before the new segment
     can be ready (the batch in flight first): none when it is ready before the next tick, so a
@@ -446,7 +500,7 @@ def test_streamed_frames_are_one_body_on_each_avatars_bones(tmp_path):
     assert fk_error(shaped["positions"], shaped["rotations"], None) > 0.01
 
 
-def test_headless_export_is_one_body_on_the_avatars_bones(tmp_path):
+def test_headless_export_is_one_body_on_the_avatars_bones(tmp_path, capsys):
     from avatar_motor.cli import main
     model = SHIPPED
     if not (SHIPPED / "model.safetensors").exists():
@@ -461,6 +515,10 @@ def test_headless_export_is_one_body_on_the_avatars_bones(tmp_path):
     out = tmp_path / "out"
     assert main(["serve", "--model", str(model), "--headless", "--seconds", "2", "--script", str(script),
                  "--export", str(out)]) == 0
+    bad = tmp_path / "bad.json"  # a malformed row budget is named, not half replayed
+    bad.write_text(json.dumps({"events": [], "budgets": [{"frame": 3, "max_rows": 0}]}))
+    assert main(["serve", "--model", str(model), "--headless", "--seconds", "1", "--script", str(bad)]) == 2
+    assert "budgets must be" in capsys.readouterr().err
     for i, shape in ((0, None), (1, torch.tensor(SHAPE))):
         with np.load(out / f"avatar{i}.npz") as z:
             states, betas = torch.from_numpy(z["states"]).double(), torch.from_numpy(z["betas"])

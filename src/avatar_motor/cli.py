@@ -505,12 +505,18 @@ def _serve_headless(a, world) -> int:
                              "(what the studio's 'save events' writes)")
         for e in events:
             P.validate_command(e["cmd"])
+        budgets = script.get("budgets", [])
+        if not isinstance(budgets, list) or not all(
+                isinstance(e, dict) and isinstance(e.get("frame"), int) and "max_rows" in e
+                and (e["max_rows"] is None or (type(e["max_rows"]) is int and e["max_rows"] >= 1)) for e in budgets):
+            raise ValueError(f"--script {a.script}: budgets must be [{{\"frame\": N, \"max_rows\": M or null}}, ...] "
+                             "(the rows the recorded server's batches could have; what /api/events writes)")
     frames = int(a.seconds * 30) if a.seconds else int(script.get("frames", 300))
     keep = script.get("keep_on_cut", world.crowd.keep_on_cut)  # as the recorded server cut its queues
     if not (isinstance(keep, int) and 0 <= keep <= 15):
         raise ValueError(f"--script {a.script}: keep_on_cut must be an integer 0..15, got {keep!r}")
     world.crowd.keep_on_cut = keep
-    world.run_offline(frames, script.get("events", []))
+    world.run_offline(frames, script.get("events", []), script.get("budgets"))
     out = Path(a.export or "out/headless")
     out.mkdir(parents=True, exist_ok=True)
     for i in world.crowd.ids():
@@ -622,7 +628,9 @@ def _bench(a) -> int:
         from .eval.serve_bench import soak
         if a.soak <= 0 or not 1 <= a.avatars <= 512 or not 1 <= a.clients <= 64:
             raise ValueError("--soak SECONDS > 0, --avatars 1..512, --clients 1..64")
-        print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png, _serve_args(a)), flush=True)
+        if a.magnet < 0:
+            raise ValueError("--magnet SECONDS must be >= 0")
+        print(soak(a.model, a.soak, a.avatars, a.clients, min(60.0, a.soak / 4), a.png, _serve_args(a), a.magnet), flush=True)
         return 0
     if a.studio:
         from .eval.studio_bench import studio_bench
@@ -1189,6 +1197,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quality", choices=("low", "high"), default="low", help="with --studio: the studio's ?quality=")
     b.add_argument("--avatars", type=int, default=8, help="with --soak and --studio")
     b.add_argument("--clients", type=int, default=4, help="with --soak")
+    b.add_argument("--magnet", type=float, default=0.0, metavar="SECONDS", help="with --soak: every SECONDS a new "
+                   "target for each avatar (the reaching adaptor follows it) instead of idle avatars")
     b.add_argument("--png", help="with --soak: plot of frames/s and memory over time; with --studio: the screenshot")
     _add_runtime_args(b)
     b.set_defaults(func=_bench)

@@ -105,11 +105,13 @@ def _rss_mb(pid: int) -> float:
 
 
 def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window: float = 60.0,
-         png: str | None = None, serve_args: list[str] | None = None) -> str:
+         png: str | None = None, serve_args: list[str] | None = None, magnet: float = 0.0) -> str:
     """`bench --soak`: a real `serve` subprocess with `avatars` idle avatars watched by `clients`
     clients for `seconds`. Per window: frames per second each client received, the server's
     resident memory, stalled ticks; over the run: frames with non-finite values and how far each
-    idle avatar's pelvis wandered."""
+    idle avatar's pelvis wandered. magnet > 0: every `magnet` seconds each avatar is sent a new
+    target 3 m from where it stood at the start (the studio's magnet moved about; the served
+    model's reaching adaptor follows it), so the avatars are not idle."""
     import threading
 
     from ..client import Client
@@ -146,6 +148,21 @@ def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window:
             t.start()
         t0 = time.time()
         stalls0 = None
+        sent = [0]
+
+        def move_targets() -> None:  # on its own thread, so the windows keep their time
+            k = 0
+            while not stop.wait(magnet):
+                with lock:
+                    starts = dict(first)
+                for i, p in starts.items():
+                    a = 1.3 * k + i
+                    cs[0].command({"type": "target", "avatar": i, "position": [float(p[0] + 3 * np.cos(a)),
+                                                                               float(p[1] + 3 * np.sin(a))]}, wait=False)
+                    sent[0] += 1
+                k += 1
+        if magnet > 0:
+            threading.Thread(target=move_targets, daemon=True).start()
         while time.time() - t0 < seconds:
             with lock:
                 before = list(counts)
@@ -177,7 +194,12 @@ def soak(model: str, seconds: float, avatars: int = 8, clients: int = 4, window:
                  f"{min(after):.0f}-{max(after):.0f} MB "
                  f"(growth {after[-1] - after[0]:+.0f} MB)")
     lines.append(f"  stalled ticks: {rows[-1]['stalls'] if rows else 0} of {int(seconds * 30)}; frames with NaN/inf: {nonfinite[0]}")
-    lines.append("  idle drift of each avatar's pelvis (m): " + ", ".join(f"{i}: {d:.2f}" for i, d in drift.items()))
+    where = ", ".join(f"{i}: {d:.2f}" for i, d in drift.items())
+    if magnet > 0:
+        lines.append(f"  magnet: a new target for every avatar every {magnet:g} s ({sent[0]} targets sent); "
+                     f"each avatar's pelvis at the end from its start (m): {where}")
+    else:
+        lines.append(f"  idle drift of each avatar's pelvis (m): {where}")
     if png:
         import matplotlib
         matplotlib.use("Agg")

@@ -166,6 +166,11 @@ class RuntimeConfig:
     # 0.312 -> 0.293 m/s, ASR +0.040 -> +0.045), more for the persona model (eval persona --n 16:
     # TPE 0.84 -> 0.60 m, the base's 0.54 -> 0.46)
     goal_candidates: int = 1
+    # served, a batch may take this share of the time its avatars' queued frames cover before the
+    # draws above (reach, goal and wall candidates, not physics mode's) are cut to fit it
+    # (crowd.fit_draws, serve/world.rows_within; 0 = never cut): a late segment stalls the avatar,
+    # and after a command's cut only a few frames are queued
+    draw_budget: float = 0.7
     # guidance: gradient-descent steps in real units on the x0 estimate at every denoising step
     move_weight: float = 0.0  # PRIMAL's L_move (mean joint velocity); 50 with path 40 was our earlier default
     path_weight: float = 0.0  # our L_path (centroid travels at the goal velocity)
@@ -278,6 +283,25 @@ def _reaching(batch: SegmentBatch, k: int) -> bool:
     return batch.targets[k] is not None and batch.adaptors[k] is not None
 
 
+def fit_draws(counts: list[int], rows: int | None) -> list[int]:
+    """Best-of-K draw counts (one per avatar, each >= 1) cut so that they sum to at most `rows`
+    (None: as they are): the largest loses one draw at a time, the later avatar of a tie first,
+    down to one draw each (an avatar is never left without its segment, so the sum may stay above
+    `rows`). Extra draws buy a better choice, a late segment stalls the avatar: a batch that would
+    take longer than the segment it makes is cut to fit (the server's budget, RuntimeConfig.draw_budget)."""
+    out = list(counts)
+    if rows is None:
+        return out
+    excess = sum(out) - rows
+    while excess > 0:
+        k = max(range(len(out)), key=lambda i: (out[i], i))
+        if out[k] <= 1:
+            break
+        out[k] -= 1
+        excess -= 1
+    return out
+
+
 def _raised(x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
     """States x (B, 267) or (B, N, 267) moved up by h (B,) m (the root and every joint)."""
     if not bool((h != 0).any()):
@@ -340,7 +364,7 @@ class Crowd:
         self.environment: Environment = FLAT  # the ground and obstacles of physics mode (set_ground, add_obstacle)
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
-        for name in ("persona_scale", "trajectory_scale", "trajectory_halflife"):  # likewise: not mid-serve
+        for name in ("persona_scale", "trajectory_scale", "trajectory_halflife", "draw_budget"):  # likewise: not mid-serve
             v = getattr(self.cfg, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and (v > 0 if name == "trajectory_halflife" else v >= 0)):
                 raise ValueError(f"runtime {name} must be a finite number {'above' if name == 'trajectory_halflife' else 'at least'} 0, got {v!r}")
@@ -353,6 +377,9 @@ class Crowd:
         # frames kept queued when a command cuts an avatar's queue (see _changed); a real-time
         # server sets it to cover one segment's generation, offline it is 0
         self.keep_on_cut = 0
+        # the most network rows a batch may have (fit_draws cuts the best-of-K draws to it; None:
+        # every draw): a real-time server sets it from how long a row takes now, offline it is None
+        self.max_rows: int | None = None
         self.guard_resets = 0  # segments refused by the physical guard (see commit)
 
     # ------------------------------------------------------------ avatars
@@ -838,7 +865,7 @@ class Crowd:
             adaptors=[a.adaptor if a.adapted else None for a in avs],
             v_goal=[self._velocity_goal(a, *aim) for a, aim in zip(avs, aims)],
             facing_goal=[self._facing_goal(a, m) for a, (m, _) in zip(avs, aims)], physics=jobs, personas=[a.persona_text for a in avs],
-            teacher=[a.teacher_segments > 0 for a in avs])
+            teacher=[a.teacher_segments > 0 for a in avs], max_rows=self.max_rows)
 
     @staticmethod
     def _pelvis_xz(a: AvatarState) -> torch.Tensor:
@@ -926,6 +953,8 @@ class Crowd:
             pelvis = batch.x0[plain][:, SLICES["joints"]][:, [0, 2]]
             walls = ~Environment(boxes=self.environment.boxes).plain_near(pelvis, OBSTACLE_CLEARANCE)
             reach = [max(c, self.cfg.wall_candidates) if bool(w) else c for c, w in zip(reach, walls)]
+        if batch.max_rows is not None:  # the server's budget: fewer draws rather than a late segment
+            reach = fit_draws(reach, batch.max_rows - sum(counts))
         plain_rows = [k for k, c in zip(plain, reach) for _ in range(c)]
         rows = torch.tensor(plain_rows + [k for k, c in zip(phys, counts) for _ in range(c)], dtype=torch.long)
         every = len(rows) == len(batch) and not phys
@@ -961,7 +990,8 @@ class Crowd:
         t4 = time.perf_counter()
         batch.lengths, batch.ball_frames, batch.pulls = lengths, ball_frames, pulls
         self.timings = {"canonicalize": t1 - t0, "diffusion": t2 - t1, "post": t3 - t2, "physics": t4 - t3,
-                        "total": t4 - t0, "batch": len(batch)}
+                        "total": t4 - t0, "batch": len(batch),
+                        "rows": len(rows)}
         return seg_w
 
     @torch.inference_mode()

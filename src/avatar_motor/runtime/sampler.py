@@ -85,11 +85,11 @@ _TEACHERS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def _subset(batch: SegmentBatch, rows: torch.Tensor) -> SegmentBatch:
-    """The rows `rows` of a batch (tensors indexed, lists picked)."""
+    """The rows `rows` of a batch (tensors indexed, lists picked; a value for the whole batch kept)."""
     picked = {}
     for f in dataclasses.fields(batch):
         v = getattr(batch, f.name)
-        picked[f.name] = v if v is None else v[rows] if torch.is_tensor(v) else [v[int(k)] for k in rows]
+        picked[f.name] = v[rows] if torch.is_tensor(v) else [v[int(k)] for k in rows] if isinstance(v, list) else v
     return SegmentBatch(**picked)
 
 

@@ -426,7 +426,7 @@ class Server:
 
     def _generation_worker(self) -> None:
         crowd = self.world.crowd
-        ema = None
+        ema = per_row = None
         while self.running:
             try:
                 if self.world.needs_generation():
@@ -436,6 +436,10 @@ class Server:
                     t = crowd.timings.get("total", 0.0)
                     ema = t if ema is None else 0.9 * ema + 0.1 * t
                     self.world.segment_seconds = ema  # a command's cut keeps what this covers
+                    # and the draws of the next batches what fits (a row's cost follows the load faster)
+                    row = t / max(crowd.timings.get("rows", 1), 1)
+                    per_row = row if per_row is None else 0.7 * per_row + 0.3 * row
+                    self.world.row_seconds(per_row)
                     self.loop.call_soon_threadsafe(self.wake.set)
                 else:
                     time.sleep(0.002)

@@ -77,6 +77,10 @@ class World:
         self.generating_since: float | None = None
         self.tick_allowance = 0.0  # how much later than next_tick the clock may still tick (Pacer)
         self.cut_pending = False  # a command emptied a queue (kept no frame): the clock ticks when it refills
+        # the row budget each batch was made with, from the frame it changed (a replay draws the
+        # same: run_offline); kept beside the events, which are the commands
+        self.budgets: deque[dict] = deque(maxlen=EVENTS_KEPT)
+        self.row_cost: float | None = None  # served: seconds a batch row takes now (row_seconds); None offline
 
     # ------------------------------------------------------------ commands
     def apply(self, cmd: dict, log: bool = True) -> dict:
@@ -246,6 +250,12 @@ class World:
             return 0
         return min(MAX_KEEP, math.ceil((ready - self.next_tick - self.tick_allowance) / period))
 
+    def row_seconds(self, seconds: float) -> None:
+        """Served: a batch row takes about `seconds` now (the generation worker's measure). From the
+        next batch on, its draws are cut to what fits in the frames its avatars have queued (generate)."""
+        with self.lock:
+            self.row_cost = seconds
+
     def frames_ready(self) -> bool:
         """Whether every avatar has a frame to show at a tick now."""
         with self.lock:
@@ -261,9 +271,14 @@ class World:
             # with the avatars that run low, those that would within a segment: the crowd stays in
             # phase, one batch per segment instead of many small ones each waiting on the other
             # (a 1-hour soak, 8 avatars on one core, before: 4 % of ticks had an avatar stalled)
+            if self.row_cost is not None:  # served: the batch must be ready before the shortest queue runs out
+                queued = min((len(a.queue) for a in self.crowd.avatars.values()), default=LOOKAHEAD)
+                self.crowd.max_rows = rows_within(self.row_cost, self.config.draw_budget, queued)
             job = self.crowd.prepare(LOOKAHEAD + self.motor.net.cfg.frames)
             if job is None:
                 return
+            if job.max_rows != (self.budgets[-1]["max_rows"] if self.budgets else None):
+                self.budgets.append({"frame": self.frame, "max_rows": job.max_rows})
             self.generating_since = time.perf_counter()
         try:  # a command that cuts every avatar of the batch stops it: the cut segment starts sooner
             seg = self.crowd.compute(job, cancelled=lambda: self.crowd.stale(job))
@@ -294,11 +309,16 @@ class World:
                     self._steer_to_target(i)
             return out
 
-    def run_offline(self, frames: int, script: list[dict] | None = None) -> None:
-        """Deterministic replay on a virtual clock: commands at their frames, generation inline."""
+    def run_offline(self, frames: int, script: list[dict] | None = None, budgets: list[dict] | None = None) -> None:
+        """Deterministic replay on a virtual clock: commands at their frames, generation inline;
+        budgets: the recorded server's row budgets from their frames on (script()'s), or None."""
         script = sorted(script or [], key=lambda e: e["frame"])
-        k = 0
+        budgets = sorted(budgets or [], key=lambda e: e["frame"])
+        k = b = 0
         for _ in range(frames):
+            while b < len(budgets) and budgets[b]["frame"] <= self.frame:  # the recorded server's row budget
+                self.crowd.max_rows = budgets[b]["max_rows"]
+                b += 1
             while k < len(script) and script[k]["frame"] <= self.frame:
                 keep = script[k].get("keep")
                 if keep is not None:  # the frames the recorded server's cut kept
@@ -339,11 +359,12 @@ class World:
         with self.lock:
             ev = list(self.events)
             return {"seed": self.seed, "frames": self.frame, "keep_on_cut": self.crowd.keep_on_cut, "events": ev,
-                    "events_dropped": self.events_total - len(ev)}
+                    "events_dropped": self.events_total - len(ev), "budgets": list(self.budgets)}
 
     def stats(self) -> dict:
         return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd),
-                "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls, "model": self.motor.name,
+                "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls,
+                "max_rows": self.crowd.max_rows, "model": self.motor.name,
                 "steps": self.crowd.cfg.steps}
 
 
@@ -420,6 +441,15 @@ def frames_to_keep(seconds: float, cap: int = MAX_KEEP) -> int:
     return max(1, min(cap, math.ceil(seconds * FPS)))
 
 
+def rows_within(seconds: float, budget: float, frames: int) -> int | None:
+    """The most rows a batch may have to be made within `budget` of the `frames` it makes, when a
+    row takes `seconds` (a batch's time over its rows: its fixed cost counted per row, so a small
+    batch is cut a little early rather than late); at least 1; None when the budget is 0 (never cut)."""
+    if budget <= 0:
+        return None
+    return max(1, int(budget * frames / FPS / max(seconds, 1e-6) + 1e-9))
+
+
 def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: int = 8) -> tuple[int, int, str]:
     """How many avatars this machine keeps in real time, and how many frames a cut must keep.
 
@@ -433,7 +463,7 @@ def measure_capacity(motor: Motor, config: RuntimeConfig, adaptors=None, probe: 
 
     def seconds(n: int) -> float:
         job = crowd.prepare(10**9)  # every avatar, the first n of them timed
-        job = dataclasses.replace(job, **{k: v[:n] for k, v in vars(job).items() if v is not None})
+        job = dataclasses.replace(job, **{k: v[:n] for k, v in vars(job).items() if isinstance(v, (list, torch.Tensor))})
         t0 = time.perf_counter()
         crowd.compute(job)
         return time.perf_counter() - t0
