@@ -516,3 +516,46 @@ def test_an_obstacle_between_shields_the_avatar_from_a_ball(tmp_path):
     face, shielded = run(True)
     assert shielded and min(z for z, _ in shielded) >= face + 0.11 - 1e-6  # never into or past the wall
     assert max(v for _, v in shielded) == pytest.approx(6.0, abs=0.5)  # back at half of 12 m/s
+
+
+@pytest.mark.slow  # 6 s of a compliant body with the shipped model: about half a minute here
+def test_an_avatar_not_in_physics_mode_steps_over_a_low_obstacle(tmp_path):
+    """RuntimeConfig.step_over: near an obstacle no higher than it, an avatar not in physics mode
+    is simulated (and not near one, or by a command, not); a higher one stays a wall. With the
+    shipped model, a walk at 1.2 m/s crosses a 20 cm bar with no joint of the exported body in it,
+    and is the model's alone again past it; with step_over 0 the bar stops it."""
+    from avatar_motor.body.motion_state import body_joints
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import SHIPPED, shipped_or_tiny
+    motor = shipped_or_tiny(tmp_path)
+
+    def walk(step_over, height, seconds):
+        crowd = Crowd(motor, RuntimeConfig(step_over=step_over), 0)
+        i = crowd.spawn()
+        crowd.add_obstacle((0.0, 2.0), (2.0, height, 0.15))
+        crowd.set_goal(i, [0.0, 1.2])
+        shown, simulated = [crowd.state(i)], []
+        for _ in range(int(seconds * 30)):
+            shown.append(crowd.next_frames()[i])
+            simulated.append(crowd.avatars[i].physics)
+        X = torch.stack(shown).double()
+        return crowd, i, body_joints(X, rest_offsets(crowd.shape(i), torch.float64)), simulated
+
+    crowd, i, _, simulated = walk(0.3, 1.0, 0.5)  # a high box: a wall, not stepped over
+    assert not any(simulated)
+    crowd, i, J, simulated = walk(0.3, 0.2, 0.5 if not SHIPPED.joinpath("model.safetensors").exists() else 6.0)
+    a = crowd.avatars[i]
+    assert simulated[0] and (a.physics or not simulated[-1])  # simulated near the bar
+    crowd.set_physics(i, False)  # a command's mode from now on: still stepped over while near it
+    assert not a.stepping_over
+    crowd.remove_obstacle()
+    for _ in range(30):
+        crowd.next_frames()
+    assert not a.physics and not a.stepping_over  # nothing near: the model's alone
+    if SHIPPED.joinpath("model.safetensors").exists():
+        bar = Box((0.0, 2.0), (2.0, 0.2, 0.15))
+        assert float(J[-1, 0, 2]) > 3.0  # crossed
+        assert not _inside(J, bar, COLLISION_RADIUS, 0.02).any()  # no sphere 2 cm into the bar
+        assert not simulated[-1]  # past it: no longer simulated
+        _, _, J0, _ = walk(0.0, 0.2, 4.0)
+        assert float(J0[-1, 0, 2]) < 2.0  # without: the bar is a wall
