@@ -1130,8 +1130,7 @@ class Crowd:
         frames, balls, _, lengths, pulls = physics.segment(bodies, x0, cands, self.cfg.physics, self.range_of_motion,
                                                            torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
                                                            [j.balls for j in jobs], trace, [j.disturbed for j in jobs],
-                                                           self.environment, self._goals([batch.v_goal[k] for k in phys]), pull,
-                                                           torch.tensor([not (j.calm or j.disturbed) for j in jobs]))
+                                                           self.environment, self._goals([batch.v_goal[k] for k in phys]), pull)
         if trace is not None:  # per avatar, the energies of the frames it keeps
             for n, k in enumerate(phys):
                 self.trace.setdefault(batch.avatars[k], []).extend(
