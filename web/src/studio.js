@@ -671,8 +671,7 @@ $("obstacle").onclick = () => { placingObstacle = !placingObstacle; $("obstacle"
 $("clear-obstacles").onclick = () => send({ type: "remove_obstacle" });
 // a bar 2 m wide and 15 cm deep across the way from the selected avatar to the clicked point;
 // the avatar is put in physics mode, so that it can step over or trip on the bar (to an avatar
-// the model moves alone a bar higher than the runtime's step_over is a wall; a lower one it is
-// simulated for while near it)
+// the model moves alone a bar is a wall)
 state.placeObstacle = async (x, z) => {
   const p = state.pelvis() || [0, 0, 0];
   const yaw = Math.atan2(x - p[0], z - p[2]) * 180 / Math.PI;  // the bar's depth (its Z) along the way

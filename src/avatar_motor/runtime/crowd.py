@@ -155,10 +155,6 @@ class RuntimeConfig:
     # target 4 m ahead, seeds 0-2 (docs/physics.md): reached in 2.3-2.8 s; straight at it, never
     route_clearance: float = 0.5
     route_lookahead: float = 3.0
-    # m: an avatar not in physics mode that comes within OBSTACLE_CLEARANCE of an obstacle no higher
-    # than this is simulated while it is near one (physics mode, turned off again once it is past),
-    # so that it steps over a curb or a low bar instead of taking it for a wall (0 = never)
-    step_over: float = 0.3
     # a reaching avatar's sampler draws this many candidate segments (in the same batch) and the
     # one whose pelvis ends nearest the target is shown (processing.nearest_candidate; 1 = off).
     # eval reach (45 x 8 targets x 2 s, scale 2.5), 1 -> 4: shipped adaptor 0.024 -> 0.018 m, ASR
@@ -253,7 +249,6 @@ class AvatarState:
     pending_balls: list = field(default_factory=list)  # thrown, entering at the next segment
     # the avatar frame until which the body is compliant and corrected (SETTLE after an external effect)
     disturbed_until: int = 0
-    stepping_over: bool = False  # in physics mode for a low obstacle near it (RuntimeConfig.step_over), not by command
 
     @property
     def adapted(self) -> bool:
@@ -638,7 +633,6 @@ class Crowd:
         way the motion continues from the frame shown, so toggling does not jump. Off drops its
         forces, springs and balls."""
         a = self._get(i)
-        a.stepping_over = False  # the command's mode from now on (step_over may turn it on again near a low obstacle)
         if bool(on) == a.physics:
             return
         a.physics = bool(on)
@@ -823,7 +817,6 @@ class Crowd:
         avs = [a for a in self.avatars.values() if len(a.queue) < min_frames]
         if not avs:
             return None
-        self._step_over(avs)
         x0 = torch.stack([a.queue[-1] if a.queue else a.state for a in avs]).double()
         # the frames before x0 where the avatar has that many (the join's smoothing and blending read
         # them; processing.continuous_past checks they lead into x0)
@@ -873,27 +866,6 @@ class Crowd:
             v_goal=[self._velocity_goal(a, *aim) for a, aim in zip(avs, aims)],
             facing_goal=[self._facing_goal(a, m) for a, (m, _) in zip(avs, aims)], physics=jobs, personas=[a.persona_text for a in avs],
             teacher=[a.teacher_segments > 0 for a in avs], max_rows=self.max_rows)
-
-    def _step_over(self, avs: list[AvatarState]) -> None:
-        """Physics mode, from the segment about to be made, for the avatars not in it that are near
-        an obstacle no higher than RuntimeConfig.step_over (the model alone cannot lift a foot over
-        it: the frames would be slid along it as along a wall), and off again for those it was
-        turned on for once they are past and nothing acts on the body (no force, spring or ball
-        just thrown, and settled after the last; its balls then go, as with the command). No cut:
-        the queued frames are shown first, as they would be anyway, and the next segment continues
-        from them."""
-        low = tuple(b for b in self.environment.boxes if b.size[1] <= self.cfg.step_over)
-        if not low and not any(a.stepping_over for a in avs):
-            return
-        xz = torch.stack([self._pelvis_xz(a) for a in avs]).double()
-        away = Environment(boxes=low).plain_near(xz, OBSTACLE_CLEARANCE)
-        for a, far in zip(avs, away.tolist()):
-            if not far and not a.physics:
-                a.physics = a.stepping_over = True
-            elif (far and a.stepping_over and a.frame + len(a.queue) + 1 > a.disturbed_until
-                  and not (a.springs or a.pending_balls or a.forces)):
-                a.physics = a.stepping_over = False
-                a.balls, a.shown_balls = [], []  # as with the command (set_physics)
 
     @staticmethod
     def _pelvis_xz(a: AvatarState) -> torch.Tensor:
