@@ -267,7 +267,7 @@ def test_rows_within_the_budget():
 
 
 def test_a_served_row_budget_cuts_the_draws_and_replays(tmp_path):
-    """A served world whose rows take long (World.row_seconds, as the generation worker reports
+    """A served world whose rows take long (World.row_cost, as the generation worker reports
     them) draws fewer best-of-K candidates in its next batches; the budget is recorded with its
     frame (script()'s budgets) and a headless replay draws as it did: the same frames, bit for bit."""
     motor = tiny_motor(tmp_path)
@@ -282,7 +282,7 @@ def test_a_served_row_budget_cuts_the_draws_and_replays(tmp_path):
     w, rows = world(), []
     for f in range(70):
         if f == 30:
-            w.row_seconds(0.15)  # 0.3 s of budget: 2 rows
+            w.row_cost = 0.15  # 0.7 of the ~14 frames queued: 2 rows
         w.run_offline(1, script if f == 0 else None)
         rows.append(w.crowd.timings.get("rows"))
     assert 4 in rows[:30] and rows[-1] == 2

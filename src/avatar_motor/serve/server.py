@@ -439,7 +439,7 @@ class Server:
                     # and the draws of the next batches what fits (a row's cost follows the load faster)
                     row = t / max(crowd.timings.get("rows", 1), 1)
                     per_row = row if per_row is None else 0.7 * per_row + 0.3 * row
-                    self.world.row_seconds(per_row)
+                    self.world.row_cost = per_row
                     self.loop.call_soon_threadsafe(self.wake.set)
                 else:
                     time.sleep(0.002)

@@ -80,7 +80,9 @@ class World:
         # the row budget each batch was made with, from the frame it changed (a replay draws the
         # same: run_offline); kept beside the events, which are the commands
         self.budgets: deque[dict] = deque(maxlen=EVENTS_KEPT)
-        self.row_cost: float | None = None  # served: seconds a batch row takes now (row_seconds); None offline
+        # served: seconds a batch row takes now (the generation worker's measure, as segment_seconds);
+        # from the next batch on, its draws are cut to what fits the frames queued (generate). None offline
+        self.row_cost: float | None = None
 
     # ------------------------------------------------------------ commands
     def apply(self, cmd: dict, log: bool = True) -> dict:
@@ -249,12 +251,6 @@ class World:
         if ready <= self.next_tick + self.tick_allowance:
             return 0
         return min(MAX_KEEP, math.ceil((ready - self.next_tick - self.tick_allowance) / period))
-
-    def row_seconds(self, seconds: float) -> None:
-        """Served: a batch row takes about `seconds` now (the generation worker's measure). From the
-        next batch on, its draws are cut to what fits in the frames its avatars have queued (generate)."""
-        with self.lock:
-            self.row_cost = seconds
 
     def frames_ready(self) -> bool:
         """Whether every avatar has a frame to show at a tick now."""
