@@ -250,8 +250,9 @@ def test_fit_draws_cuts_the_largest_down_to_one_each():
     assert fit_draws([4, 1, 4], 8) == [4, 1, 3]  # a tie: the later avatar first
     assert fit_draws([4, 1, 4], 5) == [2, 1, 2]
     assert fit_draws([4, 1, 4], 2) == [1, 1, 1]  # never below one draw: the sum stays above
-    for counts in ([4, 4, 1, 2], [1], [3, 8]):
-        for rows in range(0, 17):
+    assert fit_draws([], -3) == []  # every avatar simulated: its physics rows alone exceed the budget
+    for counts in ([4, 4, 1, 2], [1], [3, 8], []):
+        for rows in range(-2, 17):
             cut = fit_draws(counts, rows)
             assert all(1 <= c <= k for c, k in zip(cut, counts))
             assert sum(cut) == max(min(sum(counts), rows), len(counts))
@@ -295,6 +296,14 @@ def test_a_served_row_budget_cuts_the_draws_and_replays(tmp_path):
     plain = world()  # without the budget the frames differ: it was applied
     plain.run_offline(70, rec["events"])
     assert not torch.equal(plain.recording(0), w.recording(0))
+
+    # under a budget a batch of simulated avatars only (a pushed one's candidates exceed it; no
+    # plain draws to cut) still generates
+    sim = world()
+    sim.row_cost = 0.15
+    sim.run_offline(40, [{"frame": 0, "cmd": {"type": "physics", "avatar": 0, "on": True}},
+                         {"frame": 2, "cmd": {"type": "push", "avatar": 0, "joint": "head", "velocity": [0.0, 0.0, 2.0]}}])
+    assert sim.stats()["max_rows"] is not None and sim.recording(0).shape[0] == 40
 
 
 def test_a_command_keeps_the_frames_the_clock_shows_before_its_segment(tmp_path):

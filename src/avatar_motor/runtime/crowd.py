@@ -293,7 +293,7 @@ def fit_draws(counts: list[int], rows: int | None) -> list[int]:
     if rows is None:
         return out
     excess = sum(out) - rows
-    while excess > 0:
+    while excess > 0 and out:  # no plain avatars (every one simulated): nothing to cut
         k = max(range(len(out)), key=lambda i: (out[i], i))
         if out[k] <= 1:
             break
