@@ -481,6 +481,34 @@ def test_a_compliant_body_whose_model_hovers_lands_and_stays_down():
     assert float(held.min()) > 0.07, held
 
 
+def test_an_undisturbed_compliant_body_on_the_ground_is_held_up_but_not_in_the_air():
+    """PhysicsConfig.held_weight: a compliant body standing on its candidates' pose sags under
+    gravity against the prior's pull; held, by less (the prior's candidates then start from a
+    body nearer them). A body in the air is not held: it falls as an unheld one does."""
+    from avatar_motor.body.motion_state import joints_of, pack
+    from avatar_motor.physics.simulate import segment
+    state, cands, off = _segment_inputs()
+    b = prepare(off)
+    rest = joints_of(state)[0, :, 1]
+
+    def sag(st, cs, holding):
+        frames, *_ = segment(b, st, cs, holding=holding)
+        return joints_of(frames)[0, -1, :, 1] - joints_of(st)[0, :, 1]
+
+    free, held = sag(state, cands, None), sag(state, cands, torch.tensor([True]))
+    hips = rest > 0.5  # above the knees: what the legs carry
+    assert float(free[hips].mean()) < -1e-3  # unheld, the body sinks
+    assert float(held[hips].mean()) > 0.5 * float(free[hips].mean())  # held, by less than half of that
+    assert torch.equal(sag(state, cands, torch.tensor([False])), free)
+    x0, root, local, _ = _standing()
+    up = x0 + torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)  # in the air: nothing holds it
+    flying = pack(up[:, 0], root, local, up, torch.zeros_like(up))
+    fly_cands = flying[:, None, None].expand(1, 1, 3, -1).clone()
+    frames_free, *_ = segment(b, flying, fly_cands)
+    frames_held, *_ = segment(b, flying, fly_cands, holding=torch.tensor([True]))
+    assert torch.equal(joints_of(frames_free)[:, 0], joints_of(frames_held)[:, 0])
+
+
 def test_the_prior_s_pull_carries_over_a_join_and_decays():
     """A body held off its candidates feels their pull; the next segment's candidates start at the
     body, so without the pull carried over it would drop to nothing at the join (a jerk). (Its decay

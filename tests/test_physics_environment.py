@@ -516,3 +516,65 @@ def test_an_obstacle_between_shields_the_avatar_from_a_ball(tmp_path):
     face, shielded = run(True)
     assert shielded and min(z for z, _ in shielded) >= face + 0.11 - 1e-6  # never into or past the wall
     assert max(v for _, v in shielded) == pytest.approx(6.0, abs=0.5)  # back at half of 12 m/s
+
+
+def test_over_footprint_follows_the_box_rectangle_turned_with_it():
+    """Environment.over_footprint: a point is near a box when it is over its footprint grown by
+    `grow` on every side, the rectangle turned with the box (a long bar is near across its length
+    only); no boxes, nothing is near."""
+    bar = Box((0.0, 2.0), (2.0, 0.2, 0.15))  # 2 m along x, 15 cm deep along z
+    env = Environment(boxes=(bar,))
+    pts = torch.tensor([[0.0, 0.9], [0.0, 1.0], [0.9, 2.0], [1.9, 2.0], [2.1, 2.0], [0.0, 3.2]], dtype=torch.float64)
+    assert env.over_footprint(pts, 1.0).tolist() == [False, True, True, True, False, False]
+    turned = Environment(boxes=(Box((0.0, 2.0), (2.0, 0.2, 0.15), yaw=90.0),))  # now 2 m along z
+    assert turned.over_footprint(pts, 1.0).tolist() == [True, True, True, False, False, True]
+    assert not Environment().over_footprint(pts, 1.0).any()
+
+
+@pytest.mark.slow  # 6 s of a compliant body with the shipped model: about half a minute here
+def test_an_avatar_not_in_physics_mode_steps_over_a_low_obstacle(tmp_path):
+    """RuntimeConfig.step_over: with its pelvis within step_over_reach of the footprint of an
+    obstacle no higher than step_over, an avatar not in physics mode is simulated (and not near
+    one, or by a command, not); a higher one stays a wall. With the shipped model, a walk at
+    1.2 m/s crosses a 20 cm bar 2 m ahead with no joint of the exported body in it, and is the
+    model's alone again past it; with step_over 0 the bar stops it."""
+    from avatar_motor.body.motion_state import body_joints
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import SHIPPED, shipped_or_tiny
+    motor = shipped_or_tiny(tmp_path)
+    shipped = SHIPPED.joinpath("model.safetensors").exists()
+
+    def walk(step_over, height, seconds, at=2.0):
+        crowd = Crowd(motor, RuntimeConfig(step_over=step_over), 0)
+        i = crowd.spawn()
+        crowd.add_obstacle((0.0, at), (2.0, height, 0.15))
+        crowd.set_goal(i, [0.0, 1.2])
+        shown, simulated = [crowd.state(i)], []
+        for _ in range(int(seconds * 30)):
+            shown.append(crowd.next_frames()[i])
+            simulated.append(crowd.avatars[i].physics)
+        X = torch.stack(shown).double()
+        return crowd, i, body_joints(X, rest_offsets(crowd.shape(i), torch.float64)), simulated
+
+    crowd, i, _, simulated = walk(0.3, 1.0, 0.5, at=0.5)  # a high box: a wall, not stepped over
+    assert not any(simulated)
+    crowd, i, _, simulated = walk(0.3, 0.2, 0.5, at=2.8)  # a low bar 2.7 m ahead: not yet near
+    assert not any(simulated)
+    crowd, i, _, simulated = walk(0.3, 0.2, 0.5, at=0.5)  # a low bar, the pelvis 0.4 m from its face
+    a = crowd.avatars[i]
+    assert simulated[0] and a.stepping_over
+    crowd.set_physics(i, False)  # a command's mode from now on: still stepped over while near it
+    assert not a.stepping_over
+    crowd.remove_obstacle()
+    for _ in range(30):
+        crowd.next_frames()
+    assert not a.physics and not a.stepping_over  # nothing near: the model's alone
+    if shipped:
+        crowd, i, J, simulated = walk(0.3, 0.2, 6.0)
+        bar = Box((0.0, 2.0), (2.0, 0.2, 0.15))
+        assert any(simulated) and not simulated[0]  # simulated only near the bar
+        assert float(J[-1, 0, 2]) > 3.0  # crossed
+        assert not _inside(J, bar, COLLISION_RADIUS, 0.02).any()  # no sphere 2 cm into the bar
+        assert not simulated[-1]  # past it: no longer simulated
+        _, _, J0, _ = walk(0.0, 0.2, 4.0)
+        assert float(J0[-1, 0, 2]) < 2.0  # without: the bar is a wall

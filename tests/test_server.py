@@ -258,6 +258,21 @@ def test_fit_draws_cuts_the_largest_down_to_one_each():
             assert sum(cut) == max(min(sum(counts), rows), len(counts))
 
 
+def test_stats_name_the_avatars_simulated_near_a_low_obstacle(tmp_path):
+    """An avatar near a low obstacle is simulated without a command (RuntimeConfig.step_over):
+    the stats say so (the studio shows it), and not once the obstacle is gone."""
+    w = World(tiny_motor(tmp_path), seed=0)
+    w.apply({"type": "spawn"}, log=False)
+    w.apply({"type": "spawn", "position": [5.0, 0.0]}, log=False)
+    assert w.stats()["simulated"] == []
+    w.apply({"type": "obstacle", "centre": [0.0, 0.5], "size": [2.0, 0.2, 0.15]})
+    w.run_offline(20)
+    assert w.stats()["simulated"] == [0]
+    w.apply({"type": "remove_obstacle"})
+    w.run_offline(40)
+    assert w.stats()["simulated"] == []
+
+
 def test_rows_within_the_budget():
     from avatar_motor.serve.world import rows_within
     assert rows_within(0.05, 0.0, 15) is None  # budget 0: never cut

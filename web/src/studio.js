@@ -409,6 +409,7 @@ function connect() {
       $("gen").textContent = msg.gen_ms;
       $("stalls").textContent = msg.stalls;
       if (msg.environment) drawEnvironment(msg.environment);
+      showPhysics();
       warn();
     } else if (msg.type === "environment") {
       drawEnvironment(msg);
@@ -602,7 +603,9 @@ function drawBalls(balls) {
 }
 function showPhysics() {
   const on = state.physics.has(state.selected);
-  $("physics").textContent = `physics: ${on ? "on" : "off"}`;
+  // the server simulates an avatar near a low obstacle by itself (it steps over it): say so
+  const stepping = !on && (state.lastStats?.simulated || []).includes(state.selected);
+  $("physics").textContent = `physics: ${on ? "on" : "off"}${stepping ? " (stepping over)" : ""}`;
   $("physics").classList.toggle("on", on);
 }
 $("physics").onclick = async () => {
@@ -671,7 +674,8 @@ $("obstacle").onclick = () => { placingObstacle = !placingObstacle; $("obstacle"
 $("clear-obstacles").onclick = () => send({ type: "remove_obstacle" });
 // a bar 2 m wide and 15 cm deep across the way from the selected avatar to the clicked point;
 // the avatar is put in physics mode, so that it can step over or trip on the bar (to an avatar
-// the model moves alone a bar is a wall)
+// the model moves alone a bar higher than the runtime's step_over is a wall; a lower one it is
+// simulated for while near it)
 state.placeObstacle = async (x, z) => {
   const p = state.pelvis() || [0, 0, 0];
   const yaw = Math.atan2(x - p[0], z - p[2]) * 180 / Math.PI;  // the bar's depth (its Z) along the way

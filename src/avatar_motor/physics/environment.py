@@ -130,6 +130,14 @@ class Environment:
             far &= (xz.double() - torch.tensor(b.centre, dtype=torch.float64)).norm(dim=-1) > reach
         return far
 
+    def over_footprint(self, xz: torch.Tensor, grow: float) -> torch.Tensor:
+        """(B,) bool: floor points xz (B, 2) over some box's footprint grown by `grow` m on every side
+        (the box's own rectangle, turned with it: a long thin bar is near only across its length)."""
+        if not self.boxes:
+            return torch.zeros(len(xz), dtype=torch.bool)
+        c, A, h = footprints(self, grow, torch.float64)
+        return (_in_footprint_frames(xz.double(), c, A).abs() < h[None]).all(-1).any(-1)
+
     def describe(self) -> dict:
         """For clients (the protocol's `environment` message)."""
         return {"ground": {"tilt": list(self.ground.tilt), "pivot": list(self.ground.pivot)},

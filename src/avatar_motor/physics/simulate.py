@@ -23,8 +23,8 @@ import torch
 
 from ..body.motion_state import FPS, finite_velocities, joints_of, pack, unpack, velocities_of
 from ..runtime.processing import spring_decay
-from .environment import FLAT, Environment, lift_above, push_out_of_boxes
-from .solver import (COLLISION_RADIUS, H, REST_HEIGHT, Bodies, Candidates, PhysicsConfig, ballistic_candidates,
+from .environment import FLAT, Environment, lift_above, push_out_of_boxes, touching
+from .solver import (COLLISION_RADIUS, FLIGHT_MARGIN, H, REST_HEIGHT, Bodies, Candidates, PhysicsConfig, ballistic_candidates,
                      pose_from_particles, step)
 from .wrench import correct
 
@@ -157,7 +157,7 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
             balls: list[list[Ball]] | None = None, trace: list | None = None,
             correcting: list[bool] | None = None, env: Environment = FLAT,
             goals: tuple[torch.Tensor, torch.Tensor] | None = None,
-            pull: torch.Tensor | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int], torch.Tensor]:
+            pull: torch.Tensor | None = None, holding: torch.Tensor | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int], torch.Tensor]:
     """Physical frames for B bodies from their states x0 (B, 267) (world): candidates (B, K, N, 267)
     one-body world frames sampled from the model (frame i of each is the kinematic energy's set
     for frame i); forces (B, N, 22, 3) N per frame, or None; springs and balls: per body, lists.
@@ -178,7 +178,8 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     pull's strength, not its distance: a stiff body does not jump to where a compliant one was
     pulled. A compliant body in flight is carried by gravity and the external forces alone
     (solver.ballistic_candidates). Also returns each frame's pull (B, N, 22, 3), weight times
-    distance."""
+    distance. holding (B,) bool: the bodies held up by cfg.held_weight of their weight while not in
+    flight (undisturbed compliant ones), or None: none."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())
@@ -231,6 +232,10 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
         targets = moved
         goal = goals if flight is None or goals is None else (goals[0], goals[1] * (1 - flight))
         c = Candidates(targets, cu.root_rot[:, :, i], cu.local_rot[:, :, i])
+        if holding is not None and cfg.held_weight > 0 and bool(holding.any()):  # the weight the model's muscles carry
+            # (only through a joint on the ground or an obstacle: a body in the air is not held)
+            held = (holding & touching(x, REST_HEIGHT, COLLISION_RADIUS, env, FLIGHT_MARGIN)).to(torch.float64) * cfg.held_weight
+            f[..., 1] += held[:, None] * bodies.masses * cfg.gravity
         solved, _, k = step(bodies, x, v, c, forces=f, cfg=cfg, rom=rom, env=env, trace=trace, pose=pose, goal=goal)
         if cfg.correction > 0 and any(correcting):  # no force the ground cannot give (DROP §6)
             solved, _, _, contact_forces = correct(solved, x, v, bodies.masses, f, cfg, contact_forces, correcting)

@@ -134,6 +134,14 @@ class PhysicsConfig:
     # from 0.49-1.13 to 0.27-0.70 body weights (eval physics, docs/physics.md). A calm body keeps
     # the model's hold (with the rule its jitter rose 1.12 -> 1.43)
     ballistic: float = 1.0
+    # the share of its weight an undisturbed compliant body (one near an obstacle, nothing acting
+    # on it) is held up by, as an upward force on each joint while it is not in flight: the
+    # prior's pull alone let it sag frame after frame, and its next candidates, drawn from the
+    # sagging body, went on lower (past a 20-cm bar the pelvis at 0.86-0.92 m, walking beside a bar
+    # the head 1.27-1.51 m, against 0.97 and 1.58 in the open; held, 0.92-0.97 and 1.46-1.53). The
+    # ground gives that force through the feet. A body something acts on is not held: after a
+    # 400 N s push the root-wrench metric's 95th percentile rose 0.49 -> 0.70 when it was
+    held_weight: float = 1.0
     correction_step: float = 0.01  # m: the most a correction moves any joint in a frame
     ghost_threshold: float = 0.15
     # the ground's Coulomb coefficient: a compliant body's contacts (a calm body's feet are held
@@ -142,7 +150,7 @@ class PhysicsConfig:
 
     def validate(self) -> None:
         for name in ("mass", "rigidity", "contact", "range_of_motion", "kinematic", "kinematic_calm", "com_velocity", "gravity", "correction",
-                     "correction_step", "ghost_threshold", "friction", "ballistic"):
+                     "correction_step", "ghost_threshold", "friction", "ballistic", "held_weight"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v >= 0 and v == v and v != float("inf")):
                 raise ValueError(f"physics {name} must be a finite number >= 0, got {v!r}")

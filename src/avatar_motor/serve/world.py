@@ -361,7 +361,9 @@ class World:
         return {"type": "stats", "frame": self.frame, "avatars": len(self.crowd),
                 "gen_ms": round(1000 * self.crowd.timings.get("total", 0.0), 1), "stalls": self.stalls,
                 "max_rows": self.crowd.max_rows, "model": self.motor.name,
-                "steps": self.crowd.cfg.steps}
+                "steps": self.crowd.cfg.steps,
+                # in physics mode now: by command, or near a low obstacle (RuntimeConfig.step_over)
+                "simulated": sorted(i for i, a in self.crowd.avatars.items() if a.physics)}
 
 
 
