@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from avatar_motor.body.motion_state import unpack
+from avatar_motor.body.motion_state import SLICES, unpack
 from avatar_motor.body.skeleton import JOINT_INDEX, NUM_JOINTS, rest_offsets
 from avatar_motor.physics.environment import (Box, Environment, Ground, aim_round, footprints, lift_above, project_box,
                                               push_out_of_boxes, route, slide_out_of_boxes, touching)
@@ -578,3 +578,94 @@ def test_an_avatar_not_in_physics_mode_steps_over_a_low_obstacle(tmp_path):
         assert not simulated[-1]  # past it: no longer simulated
         _, _, J0, _ = walk(0.0, 0.2, 4.0)
         assert float(J0[-1, 0, 2]) < 2.0  # without: the bar is a wall
+
+
+def test_a_tilting_ground_turns_at_a_constant_rate_from_the_ground_shown():
+    from avatar_motor.physics.environment import GroundMotion
+    m = GroundMotion(Ground((0.0, 0.0)), Ground((20.0, -10.0), (1.0, 2.0)), frame=10, frames=30)
+    assert m.at(0) == m.at(10) == Ground() and m.at(40) == m.at(99) == Ground((20.0, -10.0), (1.0, 2.0))
+    mid = m.at(25)
+    assert mid.tilt == pytest.approx((10.0, -5.0)) and mid.pivot == pytest.approx((0.5, 1.0))
+    assert not m.over(39) and m.over(40)
+    env = Environment(Ground((20.0, -10.0), (1.0, 2.0))).describe(m)
+    assert env["ground"]["from"] == {"tilt": [0.0, 0.0], "pivot": [0.0, 0.0], "frame": 10, "frames": 30}
+    assert "from" not in Environment().describe()
+
+
+def test_a_simulated_body_stands_on_a_ground_that_turns_under_it_frame_by_frame(tmp_path):
+    """set_ground with seconds: the ground under a body 3 m from the pivot rises 3.6 cm a frame,
+    and each frame shown meets the ground of its own frame (no joint under it, as one made on an
+    older frame's ground would be); a second simulated body whose queue is longer waits for a batch of its own; the
+    same commands replay bit for bit; a bad duration is named."""
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from avatar_motor.serve.world import World
+    from .conftest_models import SHIPPED, shipped_or_tiny
+    motor = shipped_or_tiny(tmp_path)
+    shipped = SHIPPED.joinpath("model.safetensors").exists()
+
+    def run():
+        crowd = Crowd(motor, RuntimeConfig(), 3)
+        ids = [crowd.spawn(), crowd.spawn(position=(2.0, 0.0))]
+        for i in ids:
+            crowd.set_physics(i, True)
+        for _ in range(10):
+            crowd.next_frames()
+        crowd.set_ground((20.0, 0.0), (0.0, 3.0), seconds=1.0)
+        assert crowd.ground_motion is not None and crowd.ground_motion.frame == crowd.clock
+        crowd.next_frames()  # (the command cut both: a segment each, made together)
+        b = crowd.avatars[ids[1]]  # out of phase by 3 frames
+        b.queue, b.ball_queue, b.pull_queue = b.queue[:-3], b.ball_queue[:-3], b.pull_queue[:-3]
+        batches, shown = [], {i: [] for i in ids}
+        real_prepare = crowd.prepare
+
+        def prepare(n):  # each batch, with its avatars' queue lengths as it was made
+            b = real_prepare(n)
+            if b is not None:
+                batches.append((b, {len(crowd.avatars[i].queue) for i in b.avatars}))
+            return b
+        crowd.prepare = prepare
+        for _ in range(45):
+            out = crowd.next_frames()
+            for i in ids:
+                shown[i].append((crowd.ground_at(crowd.clock), out[i]))
+        return crowd, batches, shown
+
+    crowd, batches, shown = run()
+    turning = [(b, queued) for b, queued in batches if b.grounds is not None]
+    assert turning and all(len(queued) == 1 for _, queued in turning)  # one start frame a batch
+    assert any(len(b) == 1 for b, _ in turning)  # the later one waited
+    for i, frames in shown.items():
+        for g, x in frames:
+            J = x.double()[SLICES["joints"]].reshape(22, 3)
+            low = float(g.height(J).min())
+            assert low > -0.005  # no joint centre under the ground of its frame
+
+    assert shown[0][-1][0] == Ground((20.0, 0.0), (0.0, 3.0))
+    crowd.reset(0)  # stood up on the tilted ground, 1.1 m above the floor here, not in it
+    J = crowd.state(0).double()[SLICES["joints"]].reshape(22, 3)
+    stand = standing_state().double()[SLICES["joints"]].reshape(22, 3)
+    assert float(crowd.ground_at(crowd.clock).height_below(J[0, [0, 2]])) > 1.0
+    assert abs(float(J[:, 1].min() - crowd.ground_at(crowd.clock).height_below(J[0, [0, 2]])) - float(stand[:, 1].min())) < 1e-5
+    _, _, again = run()
+    assert all(torch.equal(a[1], b[1]) for i in shown for a, b in zip(shown[i], again[i]))
+    with pytest.raises(ValueError, match="seconds"):
+        crowd.set_ground((5.0, 0.0), seconds=-1.0)
+    w = World(motor, seed=0)
+    w.apply({"type": "spawn"}, log=False)
+    w.apply({"type": "ground", "tilt": [10.0, 0.0], "seconds": 2.0})
+    assert w.environment_payload()["ground"]["from"]["frames"] == 60
+
+
+def test_eval_physics_reads_a_tilting_platform_on_the_ground_of_each_frame(tmp_path, monkeypatch):
+    """eval physics --part environment's platform rows: the ground under the standing bodies moves
+    as the tilt and pivot say (10 degrees, 2 m from the pivot line: 0.35 m up), the figures are
+    read against the ground of each frame, and the table prints them."""
+    from avatar_motor.eval import physics as ev
+    from .conftest_models import tiny_motor
+    for name, value in (("BARS", ()), ("TILTS", ()), ("PLATFORMS", ((10.0, 0.5),)), ("BEFORE", 0.3), ("AFTER", 1.0)):
+        monkeypatch.setattr(ev, name, value)
+    r = ev.environment_eval(tiny_motor(tmp_path), n=1, progress=lambda _: None)
+    (row,) = r["platforms"]
+    assert row["ground_moved_m"] == pytest.approx(math.tan(math.radians(10.0)) * ev.PLATFORM_PIVOT, abs=0.1)
+    assert row["penetration_cm"] < 0.5  # no joint centre under the turning ground
+    assert "tilting to 10 deg in 0.5 s" in ev.format_environment(r)

@@ -638,6 +638,11 @@ def test_a_broken_model_is_never_streamed_the_guard_stands_the_avatar_up(tmp_pat
         bad = seg.clone()
         edit(bad)
         assert why in physical_faults(x0, bad, off)[0]
+    # the pelvis height is above the ground under it: on a ground tilted 2 m down it is a body
+    low = seg.clone()
+    low[0, :, J + 1:J + 66:3] -= 2.0
+    assert "pelvis height" in physical_faults(x0, low, off)[0]
+    assert physical_faults(x0, low, off, torch.full(low.shape[:2], -2.0, dtype=torch.float64)) == [None]
 
 
 def test_a_kick_is_counted_only_while_standing():

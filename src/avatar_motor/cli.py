@@ -1168,7 +1168,7 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--verbose", action="store_true", help="print each condition as it is measured")
     ep.add_argument("--part", choices=("all", "perturbations", "environment"), default="all",
                     help="perturbations: the push and ball series, ablations and energies; environment: direction "
-                    "following, a bar across the path, a tilted ground")
+                    "following, a bar across the path, a tilted ground, a tilting platform")
     ep.set_defaults(func=_eval_physics)
     es = ev.add_parser("samplers", help="DDPM 50/8, EMDM and consistency 4/2/1: quality and speed in one run")
     es.add_argument("--base", default=str(BASE_MODEL), help="the DDPM base")

@@ -636,13 +636,22 @@ $("throw").onclick = () => state.throwBall();
 const OBSTACLE_MAT = surface({ color: 0x9a6a44, roughness: 0.8 });
 const obstacleMeshes = [];
 let environmentKey = "";
-function drawEnvironment(env) {
-  const key = JSON.stringify([env.ground, env.obstacles]);
-  if (key === environmentKey) return;
-  environmentKey = key;
-  state.environment = { ground: env.ground, obstacles: env.obstacles };
-  const [ax, az] = env.ground.tilt.map((d) => (d * Math.PI) / 180);
-  const [px, pz] = env.ground.pivot;
+// the ground at stream frame `frame`: the environment's, or on its way there from `ground.from`
+// (a tilting platform: tilt and pivot each at a constant rate over `from.frames` frames)
+function groundAt(g, frame) {
+  if (!g.from) return g;
+  const s = Math.min(Math.max((frame - g.from.frame) / Math.max(g.from.frames, 1), 0), 1);
+  const lerp = (a, b) => a.map((x, k) => x + s * (b[k] - x));
+  return { tilt: lerp(g.from.tilt, g.tilt), pivot: lerp(g.from.pivot, g.pivot) };
+}
+state.groundAt = (frame) => groundAt(state.environment.ground, frame ?? state.frame ?? 0);
+let groundShown = "";
+function placeGround(g) {
+  const key = JSON.stringify([g.tilt, g.pivot]);
+  if (key === groundShown) return;
+  groundShown = key;
+  const [ax, az] = g.tilt.map((d) => (d * Math.PI) / 180);
+  const [px, pz] = g.pivot;
   // the floor turned by R_z(az) R_x(ax) about the pivot (the plane mesh lies in its own XY plane)
   const turn = new THREE.Matrix4().makeRotationZ(az).multiply(new THREE.Matrix4().makeRotationX(ax));
   const about = new THREE.Matrix4().makeTranslation(px, 0, pz).multiply(turn).multiply(new THREE.Matrix4().makeTranslation(-px, 0, -pz));
@@ -650,6 +659,13 @@ function drawEnvironment(env) {
   ground.matrix.copy(about.clone().multiply(new THREE.Matrix4().makeRotationX(-Math.PI / 2)));
   groundFrame = about;
   ground.matrixWorldNeedsUpdate = true;
+}
+function drawEnvironment(env) {
+  const key = JSON.stringify([env.ground, env.obstacles]);
+  if (key === environmentKey) return;
+  environmentKey = key;
+  state.environment = { ground: env.ground, obstacles: env.obstacles };
+  placeGround(groundAt(env.ground, state.frame || 0));
   $("tilt").value = String(Math.round(env.ground.tilt[0]));
   $("tilt-value").textContent = String(Math.round(env.ground.tilt[0]));
   while (obstacleMeshes.length < env.obstacles.length) {
@@ -683,11 +699,15 @@ state.placeObstacle = async (x, z) => {
   if (!state.physics.has(state.selected)) { await $("physics").onclick(); }
   return send({ type: "obstacle", centre: [+x.toFixed(3), +z.toFixed(3)], size: [2, +h.toFixed(3), 0.15], yaw: +yaw.toFixed(1) });
 };
+const TILT_RATE = 10;  // degrees a second
 $("tilt").oninput = () => { $("tilt-value").textContent = $("tilt").value; };
 $("tilt").onchange = async () => {
   const p = state.pelvis() || [0, 0, 0];
   if (!state.physics.has(state.selected)) { await $("physics").onclick(); }
-  send({ type: "ground", tilt: [Number($("tilt").value), 0], pivot: [+p[0].toFixed(3), +p[2].toFixed(3)] });
+  // a tilting platform: it turns there at TILT_RATE degrees a second
+  const now = state.environment ? groundAt(state.environment.ground, state.frame || 0).tilt[0] : 0;
+  const seconds = Math.min(60, Math.abs(Number($("tilt").value) - now) / TILT_RATE);
+  send({ type: "ground", tilt: [Number($("tilt").value), 0], pivot: [+p[0].toFixed(3), +p[2].toFixed(3)], seconds: +seconds.toFixed(2) });
 };
 const download = (fmt) => {
   const s = Math.max(1, Math.min(60, Number($("seconds").value) || 10));
@@ -833,6 +853,7 @@ function animate(t) {
   requestAnimationFrame(animate);
   const dt = lastT === null ? 0 : Math.min(0.1, (t - lastT) / 1000);
   lastT = t;
+  if (state.environment && state.environment.ground.from) placeGround(groundAt(state.environment.ground, state.frame || 0));
   const b = bodies.get(state.selected);
   if (b && b.positions) {  // follow the selected avatar, keeping the user's orbit offset
     const target = new THREE.Vector3(b.positions[0], 0.9, b.positions[2]);

@@ -14,7 +14,8 @@ perturbed, and watched for 5 s more:
   with the soft correction, which the shipped configuration leaves off (PhysicsConfig.correction);
 - the environment (DROP §8.2), from standing bodies: a goal velocity followed with and without
   the centre-of-mass velocity energy (Eq. 16); a bar across the walked path, of rising height
-  (does the body step over it, stumble, fall); a ground tilted under the standing body.
+  (does the body step over it, stumble, fall); a ground tilted under the standing body; and a
+  tilting platform (DROP Fig. 1), the ground turning under it after BEFORE s, rising or falling.
 """
 from __future__ import annotations
 
@@ -48,6 +49,10 @@ GOAL_SPEED = 1.2  # m/s: the walk of the environment rows
 BARS = (0.1, 0.2, 0.3, 0.45)  # m: heights of the bar across the path (15 cm deep), 1.5 m ahead
 BAR_AHEAD = 1.5
 TILTS = (5.0, 10.0, 20.0)  # degrees, about the world X axis under the bodies
+# a tilting platform: degrees about the world X axis, reached in that many seconds, about a
+# pivot line PLATFORM_PIVOT m ahead of the bodies (+: the ground under them rises, -: it falls away)
+PLATFORMS = ((10.0, 1.0), (20.0, 2.0), (20.0, 1.0), (-20.0, 1.0))
+PLATFORM_PIVOT = 2.0
 SPACING = 3.0  # m between the bodies of the environment rows (they do not meet each other)
 
 
@@ -212,9 +217,11 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
 
 
 def _standing_run(motor: Motor, n: int, seconds: float, cfg: RuntimeConfig, seed: int, rom, env: Environment,
-                  goal: tuple | None) -> torch.Tensor:
+                  goal: tuple | None, platform: tuple | None = None, grounds: list | None = None) -> torch.Tensor:
     """n average bodies standing in a row along X (SPACING apart, facing +Z) in physics mode in the
-    world `env`, given a goal velocity after BEFORE s; (n, T, 22, 3) joints of the exported body."""
+    world `env`, given a goal velocity after BEFORE s, or the ground turned (platform: Crowd.set_ground's
+    tilt, pivot, seconds) then; (n, T, 22, 3) joints of the exported body. grounds: a list to which
+    the ground of each frame is appended."""
     crowd = Crowd(motor, cfg, seed, range_of_motion=rom)
     crowd.set_environment(env)
     ids = [crowd.spawn(standing_state(None, (SPACING * k, 0.0)), torch.zeros(SHAPE_DIM)) for k in range(n)]
@@ -225,7 +232,11 @@ def _standing_run(motor: Motor, n: int, seconds: float, cfg: RuntimeConfig, seed
         if f == int(BEFORE * FPS) and goal is not None:
             for i in ids:
                 crowd.set_goal(i, goal)
+        if f == int(BEFORE * FPS) and platform is not None:
+            crowd.set_ground(*platform)
         shown = crowd.next_frames()
+        if grounds is not None:
+            grounds.append(crowd.ground_at(crowd.clock))
         frames.append(torch.stack([shown[i] for i in ids]))
     return joints_of(torch.stack(frames, 1).double())
 
@@ -273,6 +284,22 @@ def environment_eval(motor: Motor, n: int = 16, seed: int = 0, cfg: RuntimeConfi
                              "penetration_cm": 100 * max(0.0, -float(above.min())),
                              "downhill_m": float(drift[:, 2].mean()), **_up_figures(J[..., 0, 1] - g.height_below(J[..., 0, [0, 2]]))})
         progress(f"{out['tilts'][-1]}")
+    out["platforms"] = []
+    for tilt, secs in PLATFORMS:
+        grounds = []
+        # pivot PLATFORM_PIVOT ahead: a positive tilt (about +X) lifts the ground behind the pivot line
+        J = _standing_run(motor, n, seconds, cfg, seed, rom, Environment(), None,
+                          ((tilt, 0.0), (0.0, PLATFORM_PIVOT), secs), grounds)
+        above = torch.stack([g.height(J[:, t]) for t, g in enumerate(grounds)], 1)  # (n, T, 22)
+        under = torch.stack([g.height_below(J[:, t, 0, [0, 2]]) for t, g in enumerate(grounds)], 1)  # (n, T)
+        t0 = int(BEFORE * FPS)
+        drift = J[:, -1, 0] - J[:, t0, 0]
+        out["platforms"].append({"condition": f"tilting to {tilt:g} deg in {secs:g} s", "tilt": tilt, "seconds": secs,
+                                 "ground_moved_m": float(under[:, -1].mean() - under[:, t0].mean()),
+                                 "penetration_cm": 100 * max(0.0, -float(above.min())),
+                                 "moved_m": float(drift[:, [0, 2]].norm(dim=-1).mean()),
+                                 **_up_figures(J[..., 0, 1] - under)})
+        progress(f"{out['platforms'][-1]}")
     return out
 
 
@@ -287,6 +314,11 @@ def format_environment(r: dict) -> str:
     lines.append(f"{'tilted ground, standing':30s} {'downhill':>9s} {'pen. cm':>8s} {'up':>5s} {'stumbled':>8s}")
     lines += [f"{x['condition']:30s} {x['downhill_m']:9.2f} {x['penetration_cm']:8.1f} {x['stayed_up']:5.2f} "
               f"{x['stumbled']:8.2f}" for x in r["tilts"]]
+    if r.get("platforms"):
+        lines.append(f"{'tilting platform, standing':30s} {'ground m':>9s} {'pen. cm':>8s} {'up':>5s} {'stumbled':>8s} "
+                     f"{'got up':>6s} {'moved m':>7s}")
+        lines += [f"{x['condition']:30s} {x['ground_moved_m']:9.2f} {x['penetration_cm']:8.1f} {x['stayed_up']:5.2f} "
+                  f"{x['stumbled']:8.2f} {x['fell_and_got_up']:6.2f} {x['moved_m']:7.2f}" for x in r["platforms"]]
     return "\n".join(lines)
 
 

@@ -79,6 +79,32 @@ class Ground:
         return o[1] - (n[0] * (xz[..., 0] - o[0]) + n[2] * (xz[..., 1] - o[2])) / n[1]
 
 
+MAX_TILT_SECONDS = 60.0  # the longest a ground takes to turn to a new tilt
+
+
+@dataclass(frozen=True)
+class GroundMotion:
+    """A tilting platform (DROP Fig. 1): the ground turning from `start` to `end` (tilt and pivot
+    each linearly, at a constant rate) over `frames` frames from world frame `frame` on; before
+    it the start, after it the end."""
+    start: Ground
+    end: Ground
+    frame: int
+    frames: int
+
+    def at(self, t: int) -> Ground:
+        """The ground shown at world frame t."""
+        s = min(max((t - self.frame) / max(self.frames, 1), 0.0), 1.0)
+        if s >= 1.0:
+            return self.end
+        lerp = lambda a, b: tuple(x + s * (y - x) for x, y in zip(a, b))
+        return Ground(lerp(self.start.tilt, self.end.tilt), lerp(self.start.pivot, self.end.pivot))
+
+    def over(self, t: int) -> bool:
+        """From world frame t on, the ground is the end's."""
+        return t >= self.frame + self.frames
+
+
 @dataclass(frozen=True)
 class Box:
     """A static obstacle standing on the floor: centre (x, z), size (width x along its own X, height,
@@ -138,10 +164,14 @@ class Environment:
         c, A, h = footprints(self, grow, torch.float64)
         return (_in_footprint_frames(xz.double(), c, A).abs() < h[None]).all(-1).any(-1)
 
-    def describe(self) -> dict:
-        """For clients (the protocol's `environment` message)."""
-        return {"ground": {"tilt": list(self.ground.tilt), "pivot": list(self.ground.pivot)},
-                "obstacles": [{"centre": list(b.centre), "size": list(b.size), "yaw": b.yaw} for b in self.boxes]}
+    def describe(self, motion: GroundMotion | None = None) -> dict:
+        """For clients (the protocol's `environment` message); motion: the ground turning to this
+        one now (its start, and the world frames it takes), or None."""
+        out = {"ground": {"tilt": list(self.ground.tilt), "pivot": list(self.ground.pivot)}}
+        if motion is not None:
+            out["ground"]["from"] = {"tilt": list(motion.start.tilt), "pivot": list(motion.start.pivot),
+                                     "frame": motion.frame, "frames": motion.frames}
+        return out | {"obstacles": [{"centre": list(b.centre), "size": list(b.size), "yaw": b.yaw} for b in self.boxes]}
 
 
 FLAT = Environment()

@@ -157,7 +157,8 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
             balls: list[list[Ball]] | None = None, trace: list | None = None,
             correcting: list[bool] | None = None, env: Environment = FLAT,
             goals: tuple[torch.Tensor, torch.Tensor] | None = None,
-            pull: torch.Tensor | None = None, holding: torch.Tensor | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int], torch.Tensor]:
+            pull: torch.Tensor | None = None, holding: torch.Tensor | None = None,
+            grounds: tuple | None = None) -> tuple[torch.Tensor, list[list[list[Ball]]], torch.Tensor, list[int], torch.Tensor]:
     """Physical frames for B bodies from their states x0 (B, 267) (world): candidates (B, K, N, 267)
     one-body world frames sampled from the model (frame i of each is the kinematic energy's set
     for frame i); forces (B, N, 22, 3) N per frame, or None; springs and balls: per body, lists.
@@ -179,7 +180,8 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     pulled. A compliant body in flight is carried by gravity and the external forces alone
     (solver.ballistic_candidates). Also returns each frame's pull (B, N, 22, 3), weight times
     distance. holding (B,) bool: the bodies held up by cfg.held_weight of their weight while not in
-    flight (undisturbed compliant ones), or None: none."""
+    flight (undisturbed compliant ones), or None: none. grounds: the ground of each frame (N
+    environment.Ground; a tilting platform), or None: env's throughout."""
     cfg = cfg or PhysicsConfig()
     B, K, N, _ = cands.shape
     x = joints_of(x0.double())
@@ -193,8 +195,11 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     lengths = [N] * B
     pulls = []
     w = bodies.kinematic.to(torch.float64)[:, None, None]
+    if grounds is not None and len(grounds) != N:
+        raise ValueError(f"grounds: one per frame, {N}, got {len(grounds)}")
+    envs = [env] * N if grounds is None else [Environment(g, env.boxes) for g in grounds]
     if pull is not None:  # a joint on the ground keeps its footing: its pull is not carried (skating)
-        planted = env.ground.height(x) < REST_HEIGHT.to(x.dtype) + PLANTED_MARGIN
+        planted = envs[0].ground.height(x) < REST_HEIGHT.to(x.dtype) + PLANTED_MARGIN
         pull = torch.where(w > 0, pull.double() / w.clamp_min(1e-9), 0.0) * (~planted)[..., None]
     # the carried pull's share at each frame: a critically damped decay from 1, at rest
     carried = spring_decay(torch.ones(()), torch.zeros(()), cfg.pull_halflife,
@@ -203,6 +208,7 @@ def segment(bodies: Bodies, x0: torch.Tensor, cands: torch.Tensor, cfg: PhysicsC
     contact_forces = None  # the frame before's (wrench.correct), which spare most frames the NNLS
     correcting = [True] * B if correcting is None else list(correcting)
     for i in range(N):
+        env = envs[i]
         hit = [False] * B
         f = torch.zeros(B, 22, 3, dtype=torch.float64) if forces is None else forces[:, i].double().clone()
         for b in range(B):

@@ -24,7 +24,8 @@ from ..body.motion_state import (FPS, SLICES, STATE_DIM, Transform, apply_transf
                                  horizontal, velocities_of)
 from ..model.checkpoint import Motor
 from ..physics import simulate as physics
-from ..physics.environment import OBSTACLE_CLEARANCE, FLAT, MAX_BOXES, Box, Environment, Ground, aim_round, slide_out_of_boxes
+from ..physics.environment import (OBSTACLE_CLEARANCE, FLAT, MAX_BOXES, MAX_TILT_SECONDS, Box, Environment, Ground, GroundMotion,
+                                   aim_round, slide_out_of_boxes)
 from ..physics.solver import COLLISION_RADIUS, PhysicsConfig, prepare as prepare_bodies
 from ..model.persona import trajectory_of
 from .guidance import goal_trajectory
@@ -311,11 +312,12 @@ def fit_draws(counts: list[int], rows: int | None) -> list[int]:
 
 
 def _raised(x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-    """States x (B, 267) or (B, N, 267) moved up by h (B,) m (the root and every joint)."""
+    """States x (B, 267) or (B, N, 267) moved up by h (B,) m, or for (B, N, 267) by h (B, N) m a
+    frame (the root and every joint)."""
     if not bool((h != 0).any()):
         return x
     out = x.clone()
-    up = h.to(x.dtype).reshape(len(h), *[1] * (x.dim() - 1))
+    up = h.to(x.dtype).reshape(*h.shape, *[1] * (x.dim() - h.dim()))
     r, j = SLICES["root_pos"].start, SLICES["joints"].start
     out[..., r + 1:r + 2] += up
     out[..., j + 1:j + 66:3] += up
@@ -370,6 +372,10 @@ class Crowd:
         self.range_of_motion = range_of_motion
         self.trace: dict | None = None  # set to {} to collect each avatar's physics energies per frame
         self.environment: Environment = FLAT  # the ground and obstacles of physics mode (set_ground, add_obstacle)
+        # the ground turning to environment.ground (set_ground with seconds), or None; its frames
+        # are the crowd's clock: advance() calls so far (the world's frame numbers)
+        self.ground_motion: GroundMotion | None = None
+        self.clock = 0
         self.cfg = config or RuntimeConfig()
         check_stages(self.cfg.stages)  # a misspelt stage is named now, not at the first segment
         for name in ("persona_scale", "trajectory_scale", "trajectory_halflife", "draw_budget", "step_over", "step_over_reach"):  # likewise: not mid-serve
@@ -465,6 +471,9 @@ class Crowd:
         push."""
         a = self._get(i)
         a.state = standing_state(a.shape, (float(a.state[0]), float(a.state[2])))
+        if a.physics:  # on the ground it stands on (tilted, or turning)
+            up = self.ground_at(self.clock).height_below(a.state[SLICES["joints"]][[0, 2]].double())
+            a.state = _raised(a.state[None].double(), up.reshape(1)).float()[0]
         a.past, a.shown_pull = [], None
         a.v_goal = a.facing_goal = a.pending_velocity = a.adaptor = a.label = a.target = None
         a.pending_stance = False
@@ -719,11 +728,31 @@ class Crowd:
         a.pending_balls.append(ball)  # it enters where the next segment starts (after the cut)
         self._perturbed(a, a.frame + round(BALL_FLIGHT * FPS))  # it may fly that long before it hits
 
-    def set_ground(self, tilt=(0.0, 0.0), pivot=(0.0, 0.0)) -> None:
+    def set_ground(self, tilt=(0.0, 0.0), pivot=(0.0, 0.0), seconds: float = 0.0) -> None:
         """Tilt the ground (degrees about world X, then Z) about the point pivot (x, z) on the floor;
-        (0, 0) is the flat floor. It acts on the avatars in physics mode (they are resampled from
-        the frame shown); the others walk the flat floor as the model knows it."""
-        self.set_environment(Environment(Ground(tuple(tilt), tuple(pivot)), self.environment.boxes))
+        (0, 0) is the flat floor. seconds > 0: a tilting platform, turning from the ground shown
+        now to that one at a constant rate over that time. It acts on the avatars in physics mode
+        (they are resampled from the frame shown); the others walk the flat floor as the model
+        knows it."""
+        if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and 0 <= seconds <= MAX_TILT_SECONDS):
+            raise ValueError(f"ground seconds must be a number in [0, {MAX_TILT_SECONDS:g}], got {seconds!r}")
+        end = Ground(tuple(tilt), tuple(pivot))
+        start, frames = self.ground_at(self.clock), round(seconds * FPS)
+        if start.flat:  # the floor is the same about any pivot: the platform turns about the new one
+            start = Ground(start.tilt, end.pivot)
+        before = self.ground_motion if self.ground_motion is not None and not self.ground_motion.over(self.clock) else None
+        self.ground_motion = GroundMotion(start, end, self.clock, frames) if frames > 0 and end != start else None
+        env = Environment(end, self.environment.boxes)
+        if env == self.environment and self.ground_motion != before:  # the same end, another way to it
+            for a in self.avatars.values():
+                if a.physics:
+                    self._cut(a)
+        self.set_environment(env)
+
+    def ground_at(self, t: int) -> Ground:
+        """The ground at world frame t (the crowd's clock): turning, or the environment's."""
+        m = self.ground_motion
+        return self.environment.ground if m is None else m.at(t)
 
     def add_obstacle(self, centre, size, yaw: float = 0.0) -> int:
         """A static box standing on the floor at centre (x, z), of size (x, y, z) m, turned by yaw
@@ -784,6 +813,7 @@ class Crowd:
             else:
                 stalled.append(i)
             shown[i] = a.state
+        self.clock += 1
         return shown, stalled
 
     def next_frames(self) -> dict[int, torch.Tensor]:
@@ -827,6 +857,15 @@ class Crowd:
         if not avs:
             return None
         self._step_over(avs)
+        N = self.motor.net.cfg.frames
+        grounds = None  # the ground of each frame of the segment, while it turns (set_ground's seconds)
+        if self.ground_motion is not None and any(a.physics for a in avs):
+            first = min(len(a.queue) for a in avs if a.physics)
+            if not self.ground_motion.over(self.clock + first + 1):
+                # one ground per frame for every simulated body of the batch: those whose new
+                # segments start later (longer queues) wait for the next batch
+                avs = [a for a in avs if not a.physics or len(a.queue) == first]
+                grounds = tuple(self.ground_at(self.clock + first + 1 + i) for i in range(N))
         x0 = torch.stack([a.queue[-1] if a.queue else a.state for a in avs]).double()
         # the frames before x0 where the avatar has that many (the join's smoothing and blending read
         # them; processing.continuous_past checks they lead into x0)
@@ -847,9 +886,10 @@ class Crowd:
                 a.pending_velocity, a.pending_stance = None, False
                 impulse[k] = True
             a.planned = self._plan(a)
-        N = self.motor.net.cfg.frames
         jobs = []
         plain_near = self.environment.plain_near(x0[:, SLICES["joints"]][:, [0, 2]], OBSTACLE_CLEARANCE)
+        if grounds is not None:  # a turning ground is not the open floor a calm body is held on
+            plain_near[:] = False
         aims = [self._aim(a) for a in avs]
         for n_a, a in enumerate(avs):
             if not a.physics:
@@ -875,7 +915,7 @@ class Crowd:
             adaptors=[a.adaptor if a.adapted else None for a in avs],
             v_goal=[self._velocity_goal(a, *aim) for a, aim in zip(avs, aims)],
             facing_goal=[self._facing_goal(a, m) for a, (m, _) in zip(avs, aims)], physics=jobs, personas=[a.persona_text for a in avs],
-            teacher=[a.teacher_segments > 0 for a in avs], max_rows=self.max_rows)
+            teacher=[a.teacher_segments > 0 for a in avs], max_rows=self.max_rows, grounds=grounds)
 
     def _step_over(self, avs: list[AvatarState]) -> None:
         """Physics mode, from the segment about to be made, for the avatars not in it that are near
@@ -969,8 +1009,9 @@ class Crowd:
         # the model knows a flat floor at y = 0: a simulated body on a tilted ground is sampled as
         # if that floor lay at the ground's height under its pelvis (and its candidates raised back)
         floor = torch.zeros(len(batch), dtype=torch.float64)
-        if phys and not self.environment.ground.flat:
-            floor[phys] = self.environment.ground.height_below(batch.x0[phys][:, SLICES["joints"]][:, [0, 2]].double())
+        ground = batch.grounds[0] if batch.grounds else self.environment.ground
+        if phys and not ground.flat:
+            floor[phys] = ground.height_below(batch.x0[phys][:, SLICES["joints"]][:, [0, 2]].double())
             x0c, pastc = _raised(x0c, -floor), _raised(pastc, -floor)
         has_past = continuous_past(x0c, pastc, batch.has_past)
         t1 = time.perf_counter()
@@ -1116,6 +1157,10 @@ class Crowd:
                               (calm & has_past[phys]).repeat_interleave(per))
         cands = self._stages(ctx, cands_c.float()).double()
         cands = _raised(apply_transform(cands, tf.R[idx], tf.t[idx]), floor[idx])
+        if batch.grounds:  # a turning ground: each frame's candidates ride it, as the body's feet do
+            xz = batch.x0[phys][:, SLICES["joints"]][:, [0, 2]].double()  # (the pelvis where the segment starts)
+            rise = torch.stack([g.height_below(xz) for g in batch.grounds], 1)  # (P, N)
+            cands = _raised(cands, (rise - rise[:, :1])[torch.searchsorted(torch.tensor(phys), idx)])
         K, start = max(counts), per.cumsum(0) - per
         cands = cands[start[:, None] + torch.arange(K)[None] % per[:, None]]  # (P, K, N, 267)
         p = torch.tensor(phys)
@@ -1134,7 +1179,7 @@ class Crowd:
                                                            torch.stack([j.forces for j in jobs]), [j.springs for j in jobs],
                                                            [j.balls for j in jobs], trace, [j.disturbed for j in jobs],
                                                            self.environment, self._goals([batch.v_goal[k] for k in phys]), pull,
-                                                           torch.tensor([not (j.calm or j.disturbed) for j in jobs]))
+                                                           torch.tensor([not (j.calm or j.disturbed) for j in jobs]), batch.grounds)
         if trace is not None:  # per avatar, the energies of the frames it keeps
             for n, k in enumerate(phys):
                 self.trace.setdefault(batch.avatars[k], []).extend(
@@ -1168,7 +1213,16 @@ class Crowd:
         that waited for this segment cuts now. A segment that is not a physical body
         (processing.physical_faults) is never queued: that avatar is stood up where it is, with a
         log line."""
-        faults = physical_faults(batch.x0, seg_w.double(), rest_offsets(batch.shapes, torch.float64))
+        seg_d = seg_w.double()
+        floor = None  # a simulated body stands on the ground, tilted (and turning) or not
+        phys = [k for k, job in enumerate(batch.physics) if job is not None]
+        if phys and not (batch.grounds is None and self.environment.ground.flat):
+            floor = torch.zeros(seg_d.shape[:2], dtype=torch.float64)
+            pelvis = seg_d[phys][:, :, SLICES["joints"]][..., [0, 2]]  # (P, N, 2)
+            for i in range(seg_d.shape[1]):
+                g = batch.grounds[i] if batch.grounds else self.environment.ground
+                floor[phys, i] = g.height_below(pelvis[:, i])
+        faults = physical_faults(batch.x0, seg_d, rest_offsets(batch.shapes, torch.float64), floor)
         for k, (i, epoch) in enumerate(zip(batch.avatars, batch.epochs)):
             a = self.avatars.get(i)
             if a is not None and a.epoch == epoch:

@@ -447,13 +447,18 @@ MAX_SPEED = 15.0  # m/s of the pelvis, horizontally, over a segment (a sprint is
 BONE_TOLERANCE = 0.05  # m between a bone's length and its rest length
 
 
-def physical_faults(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor) -> list[str | None]:
+def physical_faults(x0: torch.Tensor, seg: torch.Tensor, offsets: torch.Tensor,
+                    floor: torch.Tensor | None = None) -> list[str | None]:
     """Why each segment (B, N, 267), continuing from x0 (B, 267), is not a physical body on its bones
-    `offsets` (B, 22, 3), or None: a non-finite value, the pelvis out of PELVIS_HEIGHT or moving
+    `offsets` (B, 22, 3), or None: a non-finite value, the pelvis out of PELVIS_HEIGHT (above the
+    ground under it: floor (B, N) m, its height at each frame; None: the floor y = 0) or moving
     faster than MAX_SPEED, a bone off its rest length. A guard, not a metric: a broken checkpoint
     (scaled weights put a pelvis at 352 km) must not be streamed."""
     out: list[str | None] = []
     J = joints_of(seg)  # (B, N, 22, 3)
+    if floor is not None:  # heights above the ground (a tilted one falls metres below y = 0)
+        J = J.clone()
+        J[..., 1] -= floor.to(J.dtype)[..., None]
     bones = (J[..., 1:, :] - J[..., PARENTS[1:], :]).norm(dim=-1)  # (B, N, 21)
     rest = offsets[:, None, 1:].norm(dim=-1)
     travel = (J[:, :, 0, [0, 2]] - joints_of(x0)[:, None, 0, [0, 2]]).norm(dim=-1)  # (B, N)

@@ -54,6 +54,7 @@ class SegmentBatch:
     personas: list | None = None  # each avatar's persona text embedding (TEXT_DIM,) or None
     teacher: list | None = None  # bool each: sampled by a few-step model's DDPM base (after an impulse preset)
     max_rows: int | None = None  # the most rows the batch may have (Crowd.max_rows, crowd.fit_draws)
+    grounds: tuple | None = None  # physics rows: the ground of each frame while it turns (Crowd.ground_motion), else None
     # what compute() found, for commit: how many frames of each row to queue (a physics segment
     # stops early to resample after a hit), and the balls of each frame [row][frame][ball]
     lengths: list | None = None

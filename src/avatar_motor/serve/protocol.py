@@ -81,7 +81,8 @@ _FIELDS = {
              {"mass": lambda v: _num(v, "mass (kg)", 0.01, 100), "radius": lambda v: _num(v, "radius (m)", 0.02, 1)}),
     # the world of physics mode (DROP 8.2): a tilted ground, static boxes on the floor
     "ground": ({"tilt": lambda v: _vec(v, 2, "tilt (degrees about x, about z)", -30, 30)},
-               {"pivot": lambda v: _vec(v, 2, "pivot (x, z m)", -1000, 1000)}),
+               {"pivot": lambda v: _vec(v, 2, "pivot (x, z m)", -1000, 1000),
+                "seconds": lambda v: _num(v, "seconds", 0, 60)}),
     "obstacle": ({"centre": lambda v: _vec(v, 2, "centre (x, z m)", -1000, 1000),
                   "size": lambda v: _vec(v, 3, "size (x, y, z m)", 0.02, 3)},
                  {"yaw": lambda v: _num(v, "yaw (degrees)", -360, 360)}),

@@ -194,7 +194,7 @@ class World:
                       cmd.get("radius", 0.11))
 
     def _cmd_ground(self, cmd):
-        self._physics(self.crowd.set_ground, cmd["tilt"], cmd.get("pivot", (0.0, 0.0)))
+        self._physics(self.crowd.set_ground, cmd["tilt"], cmd.get("pivot", (0.0, 0.0)), cmd.get("seconds", 0.0))
 
     def _cmd_obstacle(self, cmd):
         try:
@@ -207,7 +207,8 @@ class World:
 
     def environment_payload(self) -> dict:
         """The ground and obstacles (the `environment` message and the welcome's field)."""
-        return {"type": "environment", **self.crowd.environment.describe()}
+        m = self.crowd.ground_motion
+        return {"type": "environment", **self.crowd.environment.describe(None if m is None or m.over(self.crowd.clock) else m)}
 
     def balls_payload(self) -> list[dict]:
         """The balls shown now, each with the avatar it is simulated with (for the stream)."""
