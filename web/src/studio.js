@@ -644,7 +644,7 @@ function groundAt(g, frame) {
   const lerp = (a, b) => a.map((x, k) => x + s * (b[k] - x));
   return { tilt: lerp(g.from.tilt, g.tilt), pivot: lerp(g.from.pivot, g.pivot) };
 }
-state.groundAt = (frame) => groundAt(state.environment.ground, frame ?? state.frame ?? 0);
+state.groundAt = (frame, g) => groundAt(g ?? state.environment.ground, frame ?? state.frame ?? 0);
 let groundShown = "";
 function placeGround(g) {
   const key = JSON.stringify([g.tilt, g.pivot]);
