@@ -113,6 +113,14 @@ def test_every_client_is_told_the_environment(server):
         assert r["type"] == "error" and "no obstacle 4" in r["error"]
         r = a.command({"type": "ground", "tilt": [50.0, 0.0]})
         assert r["type"] == "error" and "tilt" in r["error"]
+        r = a.command({"type": "ground", "tilt": [0.0, 0.0], "seconds": -1})
+        assert r["type"] == "error" and "seconds" in r["error"]
+        # turning (a tilting platform): the environment message and the stats say where it turns from
+        assert a.command({"type": "ground", "tilt": [-5.0, 0.0], "pivot": [5.0, 5.0], "seconds": 30})["ok"]
+        m = b._wait_message(lambda m: m.get("type") == "environment" and m["ground"]["tilt"] == [-5.0, 0.0])
+        assert m["ground"]["from"]["tilt"] == [5.0, 0.0] and m["ground"]["from"]["frames"] == 900
+        m = b._wait_message(lambda m: m.get("type") == "stats" and m["environment"]["ground"]["tilt"] == [-5.0, 0.0])
+        assert m["environment"]["ground"]["from"]["frames"] == 900
         assert a.command({"type": "remove_obstacle"})["ok"] and a.command({"type": "ground", "tilt": [0.0, 0.0]})["ok"]
         m = b._wait_message(lambda m: m.get("type") == "environment" and not m["obstacles"] and m["ground"]["tilt"] == [0.0, 0.0])
         assert m["obstacles"] == []
