@@ -851,3 +851,26 @@ def test_the_flight_rule_holds_on_a_flat_floor_away_from_obstacles_only():
     assert in_flight(b, up, Environment(boxes=(Box((px + 5.0, pz), (1.0, 0.2, 0.2)),)), cfg).tolist() == [1.0]
     assert in_flight(b, up, Environment(boxes=(Box((px + 1.0, pz), (1.0, 0.2, 0.2)),)), cfg) is None
     assert in_flight(b, up, Environment(ground=Ground(tilt=(10.0, 0.0))), cfg) is None
+
+
+def test_a_simulated_avatar_beside_one_drawing_several_candidates(tmp_path):
+    """One batch: an avatar in physics mode and a plain one that draws goal_candidates segments
+    (as a steered, reaching or walled-in avatar does). The simulated body gets its own candidates,
+    not the plain one's extra draws: its frames are those it makes alone in the same crowd (before,
+    the first of them was taken from the plain avatar's rows and the batch failed)."""
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    motor = tiny_motor(tmp_path)
+
+    def run(with_other):
+        crowd = Crowd(motor, RuntimeConfig(goal_candidates=4), 0)
+        i = crowd.spawn()
+        crowd.set_physics(i, True)
+        if with_other:
+            j = crowd.spawn(position=(3.0, 0.0))
+            crowd.set_goal(j, [0.0, 1.0])
+        return torch.stack([crowd.next_frames()[i] for _ in range(30)])
+
+    together, alone = run(True), run(False)
+    # (the network's batched arithmetic differs in the last bits with the batch's size)
+    assert (together - alone).abs().max() < 1e-3, float((together - alone).abs().max())

@@ -1055,7 +1055,7 @@ class Crowd:
             seg_w[torch.tensor(plain)] = seg.float()
         t3 = time.perf_counter()
         if phys:
-            seg_w[torch.tensor(phys)], lengths_p, balls_p, pulls_p = self._simulate(batch, phys, counts, seg_all[len(plain):],
+            seg_w[torch.tensor(phys)], lengths_p, balls_p, pulls_p = self._simulate(batch, phys, counts, seg_all[len(plain_rows):],
                                                                                      x0c, tf, offsets, floor, pastc, has_past)
             for n, k in enumerate(phys):
                 lengths[k], ball_frames[k], pulls[k] = lengths_p[n], balls_p[n], pulls_p[n]
