@@ -662,7 +662,7 @@ def test_eval_physics_reads_a_tilting_platform_on_the_ground_of_each_frame(tmp_p
     read against the ground of each frame, and the table prints them."""
     from avatar_motor.eval import physics as ev
     from .conftest_models import tiny_motor
-    for name, value in (("BARS", ()), ("TILTS", ()), ("PLATFORMS", ((10.0, 0.5),)), ("BEFORE", 0.3), ("AFTER", 1.0)):
+    for name, value in (("BARS", ()), ("STEP_OVER_BARS", ()), ("TILTS", ()), ("PLATFORMS", ((10.0, 0.5),)), ("BEFORE", 0.3), ("AFTER", 1.0)):
         monkeypatch.setattr(ev, name, value)
     r = ev.environment_eval(tiny_motor(tmp_path), n=1, progress=lambda _: None)
     (row,) = r["platforms"]

@@ -14,7 +14,8 @@ perturbed, and watched for 5 s more:
   with the soft correction, which the shipped configuration leaves off (PhysicsConfig.correction);
 - the environment (DROP §8.2), from standing bodies: a goal velocity followed with and without
   the centre-of-mass velocity energy (Eq. 16); a bar across the walked path, of rising height
-  (does the body step over it, stumble, fall); a ground tilted under the standing body; and a
+  (does the body step over it, stumble, fall), in physics mode and not (the runtime simulates a
+  body near a low bar itself); a ground tilted under the standing body; and a
   tilting platform (DROP Fig. 1), the ground turning under it after BEFORE s, rising or falling.
 """
 from __future__ import annotations
@@ -47,6 +48,7 @@ CHEST = 9  # spine3
 CORRECTION = 1e-5  # the ablation with DROP's soft correction (off in the shipped config: PhysicsConfig)
 GOAL_SPEED = 1.2  # m/s: the walk of the environment rows
 BARS = (0.1, 0.2, 0.3, 0.45)  # m: heights of the bar across the path (15 cm deep), 1.5 m ahead
+STEP_OVER_BARS = (0.1, 0.2, 0.3)  # m: the same for bodies not in physics mode (RuntimeConfig.step_over)
 BAR_AHEAD = 1.5
 TILTS = (5.0, 10.0, 20.0)  # degrees, about the world X axis under the bodies
 # a tilting platform: degrees about the world X axis, reached in that many seconds, about a
@@ -217,16 +219,18 @@ def physics_eval(motor: Motor, caches, n: int = 16, seed: int = 0, cfg: RuntimeC
 
 
 def _standing_run(motor: Motor, n: int, seconds: float, cfg: RuntimeConfig, seed: int, rom, env: Environment,
-                  goal: tuple | None, platform: tuple | None = None, grounds: list | None = None) -> torch.Tensor:
+                  goal: tuple | None, platform: tuple | None = None, grounds: list | None = None,
+                  physics: bool = True) -> torch.Tensor:
     """n average bodies standing in a row along X (SPACING apart, facing +Z) in physics mode in the
     world `env`, given a goal velocity after BEFORE s, or the ground turned (platform: Crowd.set_ground's
     tilt, pivot, seconds) then; (n, T, 22, 3) joints of the exported body. grounds: a list to which
-    the ground of each frame is appended."""
+    the ground of each frame is appended. physics False: the model moves them alone (but where the
+    runtime simulates them itself: RuntimeConfig.step_over)."""
     crowd = Crowd(motor, cfg, seed, range_of_motion=rom)
     crowd.set_environment(env)
     ids = [crowd.spawn(standing_state(None, (SPACING * k, 0.0)), torch.zeros(SHAPE_DIM)) for k in range(n)]
     for i in ids:
-        crowd.set_physics(i, True)
+        crowd.set_physics(i, physics)
     frames = []
     for f in range(int(seconds * FPS)):
         if f == int(BEFORE * FPS) and goal is not None:
@@ -264,15 +268,16 @@ def environment_eval(motor: Motor, n: int = 16, seed: int = 0, cfg: RuntimeConfi
                             "speed_error": float((speed - GOAL_SPEED).abs().mean()),
                             "sideways": float(v[..., 0].mean(1).abs().mean()), **_up_figures(J[..., 0, 1])})
         progress(f"{out['goal'][-1]}")
-    for h in BARS:
+    for h, physics in [(h, True) for h in BARS] + [(h, False) for h in STEP_OVER_BARS]:
         boxes = tuple(Box((SPACING * k, BAR_AHEAD), (2.0, h, 0.15)) for k in range(n))
-        J = _standing_run(motor, n, seconds, cfg, seed, rom, Environment(boxes=boxes), (0.0, GOAL_SPEED))
+        J = _standing_run(motor, n, seconds, cfg, seed, rom, Environment(boxes=boxes), (0.0, GOAL_SPEED), physics=physics)
         depth = torch.zeros(())
         for k, b in enumerate(boxes):
             q, e, _, _ = b.local(J[k], COLLISION_RADIUS)
             depth = torch.maximum(depth, (e - q.abs()).amin(-1).max())
         crossed = J[:, -1, 0, 2] > BAR_AHEAD + 0.5
-        out["bars"].append({"condition": f"bar {100 * h:g} cm high", "height": h, "crossed": float(crossed.float().mean()),
+        out["bars"].append({"condition": f"bar {100 * h:g} cm high" + ("" if physics else ", physics off"),
+                            "height": h, "physics": physics, "crossed": float(crossed.float().mean()),
                             "penetration_cm": 100 * max(0.0, float(depth)), **_up_figures(J[..., 0, 1])})
         progress(f"{out['bars'][-1]}")
     for tilt in TILTS:
@@ -304,7 +309,8 @@ def environment_eval(motor: Motor, n: int = 16, seed: int = 0, cfg: RuntimeConfi
 
 
 def format_environment(r: dict) -> str:
-    lines = [f"environment (DROP 8.2): {r['n']} standing average bodies in physics mode, {AFTER:g} s after {BEFORE:g} s",
+    lines = [f"environment (DROP 8.2): {r['n']} standing average bodies in physics mode (but 'physics off'), "
+             f"{AFTER:g} s after {BEFORE:g} s",
              f"{'direction following':30s} {'speed err':>9s} {'sideways':>8s} {'up':>5s} {'stumbled':>8s}"]
     lines += [f"{x['condition']:30s} {x['speed_error']:9.2f} {x['sideways']:8.2f} {x['stayed_up']:5.2f} {x['stumbled']:8.2f}"
               for x in r["goal"]]
