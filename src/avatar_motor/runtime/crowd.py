@@ -740,14 +740,15 @@ class Crowd:
         start, frames = self.ground_at(self.clock), round(seconds * FPS)
         if start.flat:  # the floor is the same about any pivot: the platform turns about the new one
             start = Ground(start.tilt, end.pivot)
-        before = self.ground_motion if self.ground_motion is not None and not self.ground_motion.over(self.clock) else None
+        before = self.turning()
         self.ground_motion = GroundMotion(start, end, self.clock, frames) if frames > 0 and end != start else None
-        env = Environment(end, self.environment.boxes)
-        if env == self.environment and self.ground_motion != before:  # the same end, another way to it
-            for a in self.avatars.values():
-                if a.physics:
-                    self._cut(a)
-        self.set_environment(env)
+        # (the same end another way to it: the simulated avatars' queued frames met the old way)
+        self.set_environment(Environment(end, self.environment.boxes), resample=self.ground_motion != before)
+
+    def turning(self) -> GroundMotion | None:
+        """The ground's motion while it is turning now (set_ground's seconds), else None."""
+        m = self.ground_motion
+        return None if m is None or m.over(self.clock) else m
 
     def ground_at(self, t: int) -> Ground:
         """The ground at world frame t (the crowd's clock): turning, or the environment's."""
@@ -775,10 +776,11 @@ class Crowd:
             boxes = boxes[:index] + boxes[index + 1:]
         self.set_environment(Environment(self.environment.ground, boxes))
 
-    def set_environment(self, env: Environment) -> None:
+    def set_environment(self, env: Environment, resample: bool = False) -> None:
         """The ground (for avatars in physics mode) and the obstacles (for every avatar; see
-        set_ground, add_obstacle)."""
-        if env == self.environment:
+        set_ground, add_obstacle). resample: the avatars in physics mode are resampled from the
+        frame shown even if env is the one they had (the ground's motion to it changed)."""
+        if env == self.environment and not resample:
             return
         self.environment = env
         j = SLICES["joints"]
@@ -1160,7 +1162,7 @@ class Crowd:
         if batch.grounds:  # a turning ground: each frame's candidates ride it, as the body's feet do
             xz = batch.x0[phys][:, SLICES["joints"]][:, [0, 2]].double()  # (the pelvis where the segment starts)
             rise = torch.stack([g.height_below(xz) for g in batch.grounds], 1)  # (P, N)
-            cands = _raised(cands, (rise - rise[:, :1])[torch.searchsorted(torch.tensor(phys), idx)])
+            cands = _raised(cands, (rise - rise[:, :1]).repeat_interleave(per, 0))
         K, start = max(counts), per.cumsum(0) - per
         cands = cands[start[:, None] + torch.arange(K)[None] % per[:, None]]  # (P, K, N, 267)
         p = torch.tensor(phys)

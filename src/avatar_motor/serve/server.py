@@ -487,8 +487,8 @@ class Server:
                 self.fps_measured = (len(window) - 1) / (window[-1] - window[0])
             if window[-1] - last_stats > 1.0:
                 last_stats = window[-1]
-                with self.world.lock:  # (a turning ground with where it turns from, as the environment message)
-                    env = {k: v for k, v in self.world.environment_payload().items() if k != "type"}
+                with self.world.lock:  # what the environment message says (a turning ground with where it turns from)
+                    env = self.world.crowd.environment.describe(self.world.crowd.turning())
                 st = json.dumps({**self.world.stats(), "fps": round(self.fps_measured, 1), "clients": len(self.clients),
                                  "environment": env})
                 if self.world.stalls > last_behind:

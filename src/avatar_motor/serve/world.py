@@ -206,9 +206,9 @@ class World:
         self._physics(self.crowd.remove_obstacle, cmd.get("obstacle"))
 
     def environment_payload(self) -> dict:
-        """The ground and obstacles (the `environment` message and the welcome's field)."""
-        m = self.crowd.ground_motion
-        return {"type": "environment", **self.crowd.environment.describe(None if m is None or m.over(self.crowd.clock) else m)}
+        """The ground (turning: with where it turns from) and obstacles (the `environment` message,
+        the welcome's field and, without its type, the stats')."""
+        return {"type": "environment", **self.crowd.environment.describe(self.crowd.turning())}
 
     def balls_payload(self) -> list[dict]:
         """The balls shown now, each with the avatar it is simulated with (for the stream)."""
