@@ -648,3 +648,62 @@ def test_every_message_class_is_fuzzed_and_errors_carry_the_id(server):
         c.command({"type": "reset"})
         c.command({"type": "physics", "avatar": 0, "on": False})  # a fuzzed variant may have turned it on
         assert c.command({"type": "goal", "avatar": 0, "velocity": None})["ok"]
+
+
+def _failing_in_physics(world: World) -> None:
+    """Make world's batches fail while one of their avatars is in physics mode (a bug stand-in)."""
+    compute = world.crowd.compute
+
+    def bad(job, **kw):
+        if any(world.crowd.avatars[i].physics for i in job.avatars if i in world.crowd.avatars):
+            raise RuntimeError("a solver bug")
+        return compute(job, **kw)
+
+    world.crowd.compute = bad
+
+
+def test_a_batch_that_keeps_failing_is_given_up_and_the_world_goes_on(tmp_path):
+    """A batch that fails FAILURES_BEFORE_RESET times in a row stands its avatars up with physics
+    off, logged as commands (a replay does the same), with a notice naming them; before, it was
+    retried forever and those avatars stood frozen."""
+    from avatar_motor.serve.world import FAILURES_BEFORE_RESET
+    w = World(tiny_motor(tmp_path), seed=0)
+    w.apply({"type": "spawn"}, log=False)
+    w.run_offline(20)
+    _failing_in_physics(w)
+    w.apply({"type": "physics", "avatar": 0, "on": True})
+    calls = []
+    compute = w.crowd.compute
+    w.crowd.compute = lambda job, **kw: (calls.append(job.avatars), compute(job, **kw))[1]
+    w.run_offline(60)
+    assert not w.crowd.avatars[0].physics
+    assert len(calls) >= FAILURES_BEFORE_RESET + 1  # failed, given up, then generated again
+    assert len(w.history[0]) == 80 and w.stalls == 0
+    [n] = w.notices
+    assert n["type"] == "error" and n["avatars"] == [0] and "a solver bug" in n["error"] and "physics off" in n["error"]
+    kinds = [e["cmd"]["type"] for e in w.events]
+    assert kinds[-2:] == ["physics", "reset"] and w.failures == 0
+    # a failure that giving up does not cure is raised, not looped on
+    w.crowd.compute = lambda job, **kw: (_ for _ in ()).throw(RuntimeError("always"))
+    with pytest.raises(RuntimeError, match="always"):
+        w.run_offline(5)
+
+
+def test_a_served_batch_that_keeps_failing_tells_the_clients(tmp_path):
+    """Served: the world's other avatars keep moving while the failing one is retried, and every
+    client gets the notice once its avatars are stood up."""
+    world = World(tiny_motor(tmp_path), seed=0)
+    world.apply({"type": "spawn"}, log=False)
+    _failing_in_physics(world)
+    r = Running(world)
+    try:
+        with Client(r.url, timeout=10.0) as c:
+            assert c.command({"type": "physics", "avatar": 0, "on": True})["type"] == "ack"
+            n = c._wait_message(lambda m: m.get("type") == "error" and "avatars" in m)
+            assert n["avatars"] == [0] and "generation failed" in n["error"]
+            c.drain()
+            frames = [f["avatars"][0]["positions"] for f in c.frames(40)]
+            assert not world.crowd.avatars[0].physics
+            assert np.abs(frames[-1] - frames[0]).max() > 0  # it moves again
+    finally:
+        r.stop()

@@ -418,6 +418,8 @@ function connect() {
       drawBalls(msg.balls);
     } else if (msg.type === "ack" || msg.type === "error") {
       if (msg.type === "error") { state.errors.push(msg.error); console.warn(msg.error); }
+      // avatars a failing batch stood up (World._give_up): in the HUD for 15 s
+      if (msg.type === "error" && msg.avatars) state.notice = { text: msg.error, until: performance.now() + 15000 };
       const r = pending.get(msg.id);
       if (r) { pending.delete(msg.id); r(msg); }
     }
@@ -430,6 +432,7 @@ function warn() {
   const msgs = [];
   if (state.stallsRecent > 0) msgs.push(`generation is behind: ${state.stallsRecent} stalled frame(s) in the last second`);
   if (state.fpsTimes.length < 28 && state.connected && state.received > 60) msgs.push(`stream below 30 fps (${state.fpsTimes.length})`);
+  if (state.notice && performance.now() < state.notice.until) msgs.push(state.notice.text);
   if (state.renderTimes.length < 28 && state.received > 60) msgs.push(`this browser draws ${state.renderTimes.length} fps${QUALITY === "high" ? " (open the studio with ?quality=low)" : ""}`);
   $("warn").textContent = msgs.join(" · ");
 }

@@ -25,7 +25,7 @@ from aiohttp.abc import AbstractAccessLogger
 
 from ..body.motion_state import FPS
 from . import protocol as P
-from .world import CommandError, Pacer, World, measure_capacity
+from .world import FAILURES_BEFORE_RESET, CommandError, Pacer, World, measure_capacity
 
 log = logging.getLogger("avatar_motor.serve")
 STATIC = Path(__file__).parent / "static"
@@ -443,8 +443,9 @@ class Server:
                     self.loop.call_soon_threadsafe(self.wake.set)
                 else:
                     time.sleep(0.002)
-            except Exception:  # never let one bad batch kill the world
-                log.exception("generation failed")
+            except Exception:  # never let one bad batch kill the world (World.generate gives it up in the end)
+                log.exception("generation failed (try %d of %d before its avatars are stood up)",
+                              self.world.failures, FAILURES_BEFORE_RESET)
                 time.sleep(0.1)
 
     async def _clock(self) -> None:
@@ -481,6 +482,12 @@ class Server:
                 for c in list(self.clients):
                     c.offer(msg)
             had_balls = bool(balls)
+            if self.world.notices:  # avatars a failing batch stood up (World._give_up): every client is told
+                with self.world.lock:
+                    notices, self.world.notices = self.world.notices, []
+                for n in notices:
+                    for c in list(self.clients):
+                        c.tell(json.dumps(n))
             window.append(time.perf_counter())
             window = window[-60:]
             if len(window) > 1:

@@ -30,6 +30,10 @@ MAX_AVATARS = 512  # the most a world holds however fast the machine (Server mea
 # with 15). A command cuts the queue anyway, so a deeper queue does not slow reactions.
 LOOKAHEAD = 15
 EVENTS_KEPT = 20000  # the event history is a ring: the newest commands, about 8 MB at most
+# a batch that fails this many times in a row is given up: its avatars are stood up with physics
+# off (World.generate), the clients told. Before, the server's worker retried it forever and those
+# avatars stood frozen while every other one moved
+FAILURES_BEFORE_RESET = 3
 
 
 class CommandError(ValueError):
@@ -83,6 +87,9 @@ class World:
         # served: seconds a batch row takes now (the generation worker's measure, as segment_seconds);
         # from the next batch on, its draws are cut to what fits the frames queued (generate). None offline
         self.row_cost: float | None = None
+        self.failures = 0  # batches failed in a row (generate)
+        # what clients are told of avatars a failing batch stood up (the server sends and empties it)
+        self.notices: list[dict] = []
 
     # ------------------------------------------------------------ commands
     def apply(self, cmd: dict, log: bool = True) -> dict:
@@ -285,10 +292,32 @@ class World:
                 self.generating_since = None
             if isinstance(e, Cancelled):
                 return
-            raise
+            if not isinstance(e, Exception):  # KeyboardInterrupt, SystemExit
+                raise
+            self.failures += 1
+            if self.failures < FAILURES_BEFORE_RESET:
+                raise
+            self._give_up(job, e)
+            return
         with self.lock:
             self.crowd.commit(job, seg)
             self.generating_since = None
+            self.failures = 0
+
+    def _give_up(self, job, error: Exception) -> None:
+        """The batch failed FAILURES_BEFORE_RESET times: its avatars are stood up where they are,
+        physics off (as the commands physics off and reset, logged, so a replay does the same), and
+        a notice for the clients names them and the error. The world goes on."""
+        with self.lock:
+            ids = [i for i in dict.fromkeys(job.avatars) if i in self.crowd]
+            for i in ids:
+                self.apply({"type": "physics", "avatar": i, "on": False})
+                self.apply({"type": "reset", "avatar": i})
+            self.failures = 0
+            self.notices.append({"type": "error", "id": None, "avatars": ids, "error": (
+                f"generation failed {FAILURES_BEFORE_RESET} times in a row for avatars {ids} "
+                f"({type(error).__name__}: {error}); they were stood up where they are with physics off. "
+                "Please report it with the commands (GET /api/events), which replay it")})
 
     def tick(self) -> dict[int, torch.Tensor]:
         """Advance the clock one frame: every avatar with a frame ready shows it (the others hold
@@ -322,8 +351,14 @@ class World:
                     self.crowd.keep_on_cut = keep
                 self.apply(P.validate_command(script[k]["cmd"]))
                 k += 1
+            tries = 0
             while self.needs_generation():
-                self.generate()
+                try:
+                    self.generate()
+                except Exception:  # as the server's worker: again, until generate gives the batch up
+                    tries += 1
+                    if tries > 2 * FAILURES_BEFORE_RESET:  # giving up did not help: a bug to see
+                        raise
             self.tick()
 
     # ------------------------------------------------------------ output
