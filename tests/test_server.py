@@ -281,6 +281,22 @@ def test_stats_name_the_avatars_simulated_near_a_low_obstacle(tmp_path):
     assert w.stats()["simulated"] == []
 
 
+def test_a_body_stepping_over_a_bar_is_cut_to_the_served_row_budget(tmp_path):
+    """Simulated only to step over a low bar (nothing acting on it), an avatar's candidates are cut
+    with the plain draws when a batch would be late; a pushed one's are not."""
+    w = World(tiny_motor(tmp_path), seed=0)
+    w.apply({"type": "spawn"}, log=False)
+    w.apply({"type": "obstacle", "centre": [0.0, 0.5], "size": [2.0, 0.2, 0.15]})
+    w.run_offline(20)
+    assert w.stats()["simulated"] == [0] and w.crowd.timings["rows"] == w.config.physics.candidates
+    w.row_cost = 10.0  # a row takes longer than the queue lasts: one draw each
+    w.run_offline(20)
+    assert w.stats()["simulated"] == [0] and w.crowd.timings["rows"] == 1
+    w.apply({"type": "push", "avatar": 0, "joint": "head", "velocity": [0.0, 0.0, 2.0]})
+    w.run_offline(3)
+    assert w.crowd.timings["rows"] == w.config.physics.candidates
+
+
 def test_rows_within_the_budget():
     from avatar_motor.serve.world import rows_within
     assert rows_within(0.05, 0.0, 15) is None  # budget 0: never cut

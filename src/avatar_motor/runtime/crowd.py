@@ -175,7 +175,8 @@ class RuntimeConfig:
     # TPE 0.84 -> 0.60 m, the base's 0.54 -> 0.46)
     goal_candidates: int = 1
     # served, a batch may take this share of the time its avatars' queued frames cover before the
-    # draws above (reach, goal and wall candidates, not physics mode's) are cut to fit it
+    # draws above (reach, goal and wall candidates, and those of a body simulated only to step over
+    # a low obstacle; not physics mode's) are cut to fit it
     # (crowd.fit_draws, serve/world.rows_within; 0 = never cut): a late segment stalls the avatar,
     # and after a command's cut only a few frames are queued
     draw_budget: float = 0.7
@@ -908,7 +909,8 @@ class Crowd:
             jobs.append(PhysicsJob(forces, list(a.springs), (a.balls + a.pending_balls)[-MAX_BALLS:], list(a.pending_balls),
                                    disturbed, a.pull_queue[-1] if a.queue else a.shown_pull,
                                    # (an impulse queued before physics was turned on disturbed nothing)
-                                   calm=not disturbed and not bool(impulse[n_a]) and bool(plain_near[n_a])))
+                                   calm=not disturbed and not bool(impulse[n_a]) and bool(plain_near[n_a]),
+                                   stepping=a.stepping_over and not disturbed and not bool(impulse[n_a])))
         return SegmentBatch(
             avatars=[a.id for a in avs], epochs=[a.epoch for a in avs], x0=x0, past=past, has_past=has_past,
             impulse_velocity=dv, impulse=impulse,
@@ -1028,7 +1030,14 @@ class Crowd:
             walls = ~Environment(boxes=self.environment.boxes).plain_near(pelvis, OBSTACLE_CLEARANCE)
             reach = [max(c, self.cfg.wall_candidates) if bool(w) else c for c, w in zip(reach, walls)]
         if batch.max_rows is not None:  # the server's budget: fewer draws rather than a late segment
-            reach = fit_draws(reach, batch.max_rows - sum(counts))
+            # (a body stepping over a bar, nothing acting on it, among them: 8 candidates made its
+            # segments 8x as long as a plain avatar's and stalled a served crowd near a bar)
+            cut = [n for n, k in enumerate(phys) if batch.physics[k].stepping]
+            fixed = sum(c for n, c in enumerate(counts) if n not in cut)
+            both = fit_draws(reach + [counts[n] for n in cut], batch.max_rows - fixed)
+            reach = both[:len(reach)]
+            for n, c in zip(cut, both[len(reach):]):
+                counts[n] = c
         plain_rows = [k for k, c in zip(plain, reach) for _ in range(c)]
         rows = torch.tensor(plain_rows + [k for k, c in zip(phys, counts) for _ in range(c)], dtype=torch.long)
         every = len(rows) == len(batch) and not phys

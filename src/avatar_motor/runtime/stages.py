@@ -29,6 +29,9 @@ class PhysicsJob:
     # nothing acts on the body and nothing is near it (Crowd.prepare): the solver's calm weight and
     # candidates (PhysicsConfig.kinematic_calm, candidates_calm)
     calm: bool = False
+    # simulated only to step over a low obstacle (RuntimeConfig.step_over), nothing acting on it:
+    # served over the row budget, its candidates are cut with the plain avatars' draws
+    stepping: bool = False
 
 
 @dataclass
