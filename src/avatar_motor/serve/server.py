@@ -486,6 +486,7 @@ class Server:
                 with self.world.lock:
                     notices, self.world.notices = self.world.notices, []
                 for n in notices:
+                    log.warning("%s", n["error"])
                     for c in list(self.clients):
                         c.tell(json.dumps(n))
             window.append(time.perf_counter())
