@@ -1033,7 +1033,7 @@ class Crowd:
             # (a body stepping over a bar, nothing acting on it, among them: 8 candidates made its
             # segments 8x as long as a plain avatar's and stalled a served crowd near a bar)
             cut = [n for n, k in enumerate(phys) if batch.physics[k].stepping]
-            fixed = sum(c for n, c in enumerate(counts) if n not in cut)
+            fixed = sum(counts) - sum(counts[n] for n in cut)
             both = fit_draws(reach + [counts[n] for n in cut], batch.max_rows - fixed)
             reach = both[:len(reach)]
             for n, c in zip(cut, both[len(reach):]):
