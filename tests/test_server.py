@@ -705,10 +705,64 @@ def test_a_batch_that_keeps_failing_is_given_up_and_the_world_goes_on(tmp_path):
         w.run_offline(5)
 
 
+def test_only_the_avatar_that_fails_a_batch_is_given_up(tmp_path):
+    """A batch of several that fails is tried one avatar at a time: the avatar that fails alone is
+    given up, the others keep their motion (no reset, physics as it was); before, an avatar that only
+    shared the batch was stood up too. A replay of the commands shows the same motion."""
+    w = World(tiny_motor(tmp_path), seed=0)
+    for _ in range(3):
+        w.apply({"type": "spawn"})
+    w.run_offline(20)
+    _failing_in_physics(w)
+    w.apply({"type": "physics", "avatar": 1, "on": True})
+    batches = []
+    compute = w.crowd.compute
+    w.crowd.compute = lambda job, **kw: (batches.append(list(job.avatars)), compute(job, **kw))[1]
+    w.run_offline(60)
+    [n] = w.notices
+    assert n["avatars"] == [1] and "a solver bug" in n["error"]
+    assert batches[:6] == [[0, 1, 2], [0], [1], [1], [1], [2]]  # failed together, then each alone, the culprit 3 times
+    assert [0, 1, 2] in batches[6:] and not w.searched and not w.suspects  # together again after
+    resets = [e["cmd"].get("avatar") for e in w.events if e["cmd"]["type"] == "reset"]
+    assert resets == [1] and not w.crowd.avatars[1].physics
+    assert all(len(w.history[i]) == 80 for i in range(3))
+    # the replay, with the same bug: the give-up's commands come at the frame of the failed batch,
+    # before it, so the replay never meets the failure, and its motion is the recorded one
+    r = World(tiny_motor(tmp_path), seed=0)
+    _failing_in_physics(r)
+    r.run_offline(80, w.script()["events"])
+    assert not r.notices
+    for i in range(3):
+        assert torch.equal(torch.stack(list(r.history[i])), torch.stack(list(w.history[i])))
+
+
+def test_a_batch_that_fails_only_whole_is_given_up_whole(tmp_path):
+    """Every avatar of the failing batch goes through alone, and the batch fails again together:
+    it is given up whole, once, and the world goes on."""
+    w = World(tiny_motor(tmp_path), seed=0)
+    for _ in range(2):
+        w.apply({"type": "spawn"}, log=False)
+    w.run_offline(20)
+    compute, failed = w.crowd.compute, []
+
+    def together(job, **kw):
+        if len(job.avatars) > 1 and len(failed) < 4:
+            failed.append(list(job.avatars))
+            raise RuntimeError("a batching bug")
+        return compute(job, **kw)
+
+    w.crowd.compute = together
+    w.run_offline(60)
+    [n] = w.notices
+    assert n["avatars"] == [0, 1] and "a batching bug" in n["error"] and len(failed) == 4
+    assert all(len(w.history[i]) == 80 for i in range(2)) and not w.searched
+
+
 def test_a_served_batch_that_keeps_failing_tells_the_clients(tmp_path):
     """Served: the world's other avatars keep moving while the failing one is retried, and every
-    client gets the notice once its avatars are stood up."""
+    client gets the notice once its avatars are stood up; the avatar that only shared its batch is not."""
     world = World(tiny_motor(tmp_path), seed=0)
+    world.apply({"type": "spawn"}, log=False)
     world.apply({"type": "spawn"}, log=False)
     _failing_in_physics(world)
     r = Running(world)
@@ -717,6 +771,7 @@ def test_a_served_batch_that_keeps_failing_tells_the_clients(tmp_path):
             assert c.command({"type": "physics", "avatar": 0, "on": True})["type"] == "ack"
             n = c._wait_message(lambda m: m.get("type") == "error" and "avatars" in m)
             assert n["avatars"] == [0] and "generation failed" in n["error"]
+            assert [e["cmd"].get("avatar") for e in world.events if e["cmd"]["type"] == "reset"] == [0]
             c.drain()
             frames = [f["avatars"][0]["positions"] for f in c.frames(40)]
             assert not world.crowd.avatars[0].physics

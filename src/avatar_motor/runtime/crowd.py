@@ -854,9 +854,10 @@ class Crowd:
         self.commit(batch, self.compute(batch))
         return len(batch)
 
-    def prepare(self, min_frames: int) -> SegmentBatch | None:
-        """Snapshot what to generate (call under the owner's lock in threaded use)."""
-        avs = [a for a in self.avatars.values() if len(a.queue) < min_frames]
+    def prepare(self, min_frames: int, only: set[int] | None = None) -> SegmentBatch | None:
+        """Snapshot what to generate (call under the owner's lock in threaded use); only: just
+        these avatars (the others wait), e.g. to find which avatar of a failing batch fails it."""
+        avs = [a for a in self.avatars.values() if len(a.queue) < min_frames and (only is None or a.id in only)]
         if not avs:
             return None
         self._step_over(avs)

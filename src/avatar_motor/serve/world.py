@@ -32,7 +32,8 @@ LOOKAHEAD = 15
 EVENTS_KEPT = 20000  # the event history is a ring: the newest commands, about 8 MB at most
 # a batch that fails this many times in a row is given up: its avatars are stood up with physics
 # off (World.generate), the clients told. Before, the server's worker retried it forever and those
-# avatars stood frozen while every other one moved
+# avatars stood frozen while every other one moved. A batch of several that fails is first tried
+# one avatar at a time, so that only the avatars that fail alone are given up
 FAILURES_BEFORE_RESET = 3
 
 
@@ -88,6 +89,11 @@ class World:
         # from the next batch on, its draws are cut to what fits the frames queued (generate). None offline
         self.row_cost: float | None = None
         self.failures = 0  # batches failed in a row (generate)
+        # the avatars of a failed batch not yet tried alone (generate makes their segments one at a
+        # time), and whether that search has run since the last batch of several went through: a
+        # batch that fails again after it is given up whole (its avatars fail only together)
+        self.suspects: list[int] = []
+        self.searched = False
         # what clients are told of avatars a failing batch stood up (the server sends and empties it)
         self.notices: list[dict] = []
 
@@ -278,8 +284,12 @@ class World:
             if self.row_cost is not None:  # served: the batch must be ready before the shortest queue runs out
                 queued = min((len(a.queue) for a in self.crowd.avatars.values()), default=LOOKAHEAD)
                 self.crowd.max_rows = rows_within(self.row_cost, self.config.draw_budget, queued)
-            job = self.crowd.prepare(LOOKAHEAD + self.motor.net.cfg.frames)
+            self.suspects = [i for i in self.suspects if i in self.crowd]
+            only = set(self.suspects[:1]) if self.suspects else None
+            job = self.crowd.prepare(LOOKAHEAD + self.motor.net.cfg.frames, only)
             if job is None:
+                if self.suspects:  # it needs no segment now (a command filled its queue): nothing to try
+                    self.suspects.pop(0)
                 return
             if job.max_rows != (self.budgets[-1]["max_rows"] if self.budgets else None):
                 self.budgets.append({"frame": self.frame, "max_rows": job.max_rows})
@@ -294,15 +304,23 @@ class World:
                 return
             if not isinstance(e, Exception):  # KeyboardInterrupt, SystemExit
                 raise
-            self.failures += 1
-            if self.failures < FAILURES_BEFORE_RESET:
-                raise
-            self._give_up(job, e)
+            with self.lock:
+                self.failures += 1
+                if len(job.avatars) > 1 and not self.searched:  # which of them fails it? each alone
+                    self.suspects, self.searched, self.failures = list(job.avatars), True, 0
+                    raise
+                if self.failures < FAILURES_BEFORE_RESET:
+                    raise
+                self._give_up(job, e)
             return
         with self.lock:
             self.crowd.commit(job, seg)
             self.generating_since = None
             self.failures = 0
+            if self.suspects and job.avatars == self.suspects[:1]:
+                self.suspects.pop(0)  # not this one
+            elif not self.suspects and len(job.avatars) > 1:
+                self.searched = False
 
     def _give_up(self, job, error: Exception) -> None:
         """The batch failed FAILURES_BEFORE_RESET times: its avatars are stood up where they are,
@@ -314,6 +332,7 @@ class World:
                 self.apply({"type": "physics", "avatar": i, "on": False})
                 self.apply({"type": "reset", "avatar": i})
             self.failures = 0
+            self.suspects = [i for i in self.suspects if i not in ids]
             self.notices.append({"type": "error", "id": None, "avatars": ids, "error": (
                 f"generation failed {FAILURES_BEFORE_RESET} times in a row for avatars {ids} "
                 f"({type(error).__name__}: {error}); they were stood up where they are with physics off. "
@@ -356,8 +375,8 @@ class World:
                 try:
                     self.generate()
                 except Exception:  # as the server's worker: again, until generate gives the batch up
-                    tries += 1
-                    if tries > 2 * FAILURES_BEFORE_RESET:  # giving up did not help: a bug to see
+                    tries += 1  # (each avatar of a failing batch may be tried alone, FAILURES_BEFORE_RESET times)
+                    if tries > (len(self.crowd) + 2) * FAILURES_BEFORE_RESET:  # giving up did not help: a bug to see
                         raise
             self.tick()
 
