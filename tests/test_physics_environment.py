@@ -297,11 +297,12 @@ def test_an_avatar_not_in_physics_mode_meets_an_obstacle_as_a_wall_and_stays_one
     """In the crowd: an avatar sent at a wall at 1.2 m/s (no physics mode) never puts a joint of the
     body users get (FK of its rotations) into the wall, its velocities stay the backward
     differences of its joints, and its goal is turned along the wall before it (none into it);
-    with the shipped model it stops in front of the wall and, with the wall turned, goes past its end."""
+    with the shipped model it stops in front of the wall and, with the wall turned, goes past its
+    end. (Its goal not routed round the wall: route_ahead 0.)"""
     from avatar_motor.body.motion_state import body_joints, joints_of
     from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
     from .conftest_models import SHIPPED, shipped_or_tiny
-    crowd = Crowd(shipped_or_tiny(tmp_path), RuntimeConfig(), 0)
+    crowd = Crowd(shipped_or_tiny(tmp_path), RuntimeConfig(route_ahead=0.0), 0)
     i = crowd.spawn()
     for _ in range(3):
         crowd.next_frames()
@@ -334,6 +335,62 @@ def test_an_avatar_not_in_physics_mode_meets_an_obstacle_as_a_wall_and_stays_one
             crowd.next_frames()
         assert float(joints_of(crowd.state(i).double())[0, 2]) > float(J[-1, 0, 2]) + 1.0  # round its end
     assert epoch <= crowd.avatars[i].epoch
+
+
+def test_the_way_ahead_of_a_walk_ends_past_the_obstacle_in_it():
+    """way_ahead: None when the line is open (or passes the footprint grown by the margin); else
+    the first point of the line at least `ahead` on that is clear of the footprint grown by the
+    clearance; None when the line stays in a box for as far as it looks (walled in)."""
+    env = Environment(boxes=(Box((0.0, 2.0), (3.0, 1.5, 0.1)),))
+    from avatar_motor.physics.environment import way_ahead
+    assert way_ahead((0.0, 0.0), (1.0, 0.0), env, 0.5, 3.0, 0.25) is None  # along the wall: open
+    assert way_ahead((0.0, 0.0), (0.0, 1.0), env, 0.5, 1.0, 0.25) is None  # the wall beyond the look ahead
+    assert way_ahead((0.0, 0.0), (0.0, 0.0), env, 0.5, 3.0, 0.25) is None  # no direction
+    p = way_ahead((0.0, 0.0), (0.0, 2.0), env, 0.5, 3.0, 0.25)
+    assert p is not None and torch.allclose(p, torch.tensor([0.0, 3.0], dtype=torch.float64))
+    p = way_ahead((0.0, 0.0), (0.0, 2.0), env, 0.5, 2.3, 0.25)  # 2.3 m on is within the clearance: further
+    assert float(p[1]) == pytest.approx(2.6, abs=1e-6) and float(p[0]) == 0.0
+    # a line 1.6 m off the wall's middle passes its end (1.5) within the clearance but outside the margin
+    assert way_ahead((1.8, 0.0), (0.0, 1.0), env, 0.5, 3.0, 0.25) is None
+    assert way_ahead((1.6, 0.0), (0.0, 1.0), env, 0.5, 3.0, 0.25) is not None
+    long = Environment(boxes=(Box((0.0, 2.0), (0.2, 1.5, 3.0)),))  # a wall along the line, longer than it looks
+    assert way_ahead((0.0, 0.0), (0.0, 1.0), long, 0.5, 3.0, 0.25, beyond=3.2) is None
+
+
+def test_a_velocity_goal_into_a_wall_is_aimed_round_it_at_its_speed(tmp_path):
+    """An avatar steered at a wall (a stick held forward) is given, for its segment, the way round
+    the wall at the stick's speed, facing along it, and the stick's own goal again once the way is
+    open; a low bar is not gone round (it is stepped over), nor a goal set with route=False (the
+    magnet's, already aimed); route_ahead 0 leaves the goal to stop at the wall."""
+    from avatar_motor.runtime.crowd import Crowd, RuntimeConfig
+    from .conftest_models import tiny_motor
+    crowd = Crowd(tiny_motor(tmp_path), RuntimeConfig(), 0)
+    i = crowd.spawn(position=(0.0, 0.0))
+    a = crowd.avatars[i]
+    crowd.set_goal(i, [0.0, 1.2])
+    batch = crowd.prepare(10 ** 6)
+    assert torch.equal(batch.v_goal[0], a.v_goal) and torch.equal(batch.facing_goal[0], a.facing_goal)  # the way is open
+    crowd.add_obstacle((0.0, 2.0), (3.0, 1.5, 0.1))
+    batch = crowd.prepare(10 ** 6)
+    v = batch.v_goal[0]
+    assert float(v[[0, 2]].norm()) == pytest.approx(1.2, rel=1e-5) and abs(float(v[0])) > 0.5  # sideways, at its speed
+    assert torch.allclose(batch.facing_goal[0], v / v.norm(), atol=1e-6)
+    pelvis = crowd._pelvis_xz(a).double()
+    aim, direct = aim_round(pelvis, (float(pelvis[0]), 3.0), crowd.environment, 0.5, 3.0)
+    assert not direct and torch.allclose(v[[0, 2]].double() / 1.2, (aim - pelvis) / (aim - pelvis).norm(), atol=1e-5)
+    crowd.set_goal(i, [0.0, 1.2], route=False)
+    assert torch.equal(crowd.prepare(10 ** 6).v_goal[0], a.v_goal)
+    crowd.set_goal(i, [0.0, 1.2], facing=[1.0, 0.0])  # a facing of its own is kept
+    batch = crowd.prepare(10 ** 6)
+    assert not torch.equal(batch.v_goal[0], a.v_goal) and torch.equal(batch.facing_goal[0], a.facing_goal)
+    crowd.remove_obstacle()
+    crowd.add_obstacle((0.0, 2.0), (3.0, 0.2, 0.1))  # a bar: stepped over
+    assert torch.equal(crowd.prepare(10 ** 6).v_goal[0], a.v_goal)
+    off = Crowd(tiny_motor(tmp_path), RuntimeConfig(route_ahead=0.0), 0)
+    j = off.spawn(position=(0.0, 0.0))
+    off.set_goal(j, [0.0, 1.2])
+    off.add_obstacle((0.0, 2.0), (3.0, 1.5, 0.1))
+    assert torch.equal(off.prepare(10 ** 6).v_goal[0], off.avatars[j].v_goal)
 
 
 def test_a_body_touches_the_ground_or_an_obstacle_within_the_margin_else_it_flies():

@@ -474,6 +474,30 @@ def route(start, goal, env: Environment, clearance: float) -> torch.Tensor:
     return nodes[way[::-1]]
 
 
+def way_ahead(start, direction, env: Environment, clearance: float, ahead: float, margin: float,
+              beyond: float = 20.0) -> torch.Tensor | None:
+    """Where a walk from `start` (x, z) along `direction` (x, z) is headed when an obstacle stands
+    in the way within `ahead` m (a footprint grown by `margin`): the first point on that line at
+    least `ahead` m on and clear of every footprint grown by `clearance` (so that a way round can
+    end there), None when the way is open or no such point lies within `beyond` m (walled in).
+    A margin under the clearance is hysteresis: a body that went round a corner at the clearance
+    and strays back a little is not sent round it again."""
+    s = torch.as_tensor(start, dtype=torch.float64).reshape(2)
+    d = torch.as_tensor(direction, dtype=torch.float64).reshape(2)
+    n = float(d.norm())
+    if not env.boxes or n < 1e-9 or ahead <= 0:
+        return None
+    d = d / n
+    c, A, h = footprints(env, margin)
+    if not bool(_crossing(s[None], (s + ahead * d)[None], c, A, h).any()):
+        return None
+    c, A, h = footprints(env, clearance)
+    t = torch.arange(ahead, beyond + 1e-9, 0.1, dtype=torch.float64)
+    p = s[None] + t[:, None] * d[None]
+    clear = ~(_in_footprint_frames(p, c, A).abs() < h[None]).all(-1).any(-1)
+    return p[int(clear.nonzero()[0])] if bool(clear.any()) else None
+
+
 def aim_round(start, goal, env: Environment, clearance: float, lookahead: float) -> tuple[torch.Tensor, bool]:
     """Where to head for `goal` (x, z) from `start` with obstacles about: the goal itself, True,
     when the straight way is open (route); else, False, the point `lookahead` m along the way

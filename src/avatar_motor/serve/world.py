@@ -251,7 +251,7 @@ class World:
             return
         v = d / dist * tg.speed * min(1.0, dist)
         if cur is None or not torch.equal(cur[[0, 2]], v):
-            self.crowd.set_goal(i, v.tolist())  # the crowd cuts only for a noticeable change
+            self.crowd.set_goal(i, v.tolist(), route=False)  # the crowd cuts only for a noticeable change
 
     def frames_to_keep_now(self, now: float) -> int:
         """The frames a command's cut keeps at time `now`: as many as the clock shows before the
