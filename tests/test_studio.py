@@ -345,6 +345,50 @@ def test_physics_in_the_studio(tmp_path, artifacts):
         assert off < 0.25, off  # switching off continues from the frame shown
 
 
+@pytest.mark.slow  # about 30 s: the shipped family and the page in software GL
+@needs_chromium
+def test_wasd_into_a_wall_in_the_studio_goes_round_it(artifacts):
+    """The shipped family served: W held in the page (the stick forward) and a wall 3 m wide placed
+    2 m ahead of the avatar across that way. The avatar goes round the wall's end and on the way
+    W points, at W's speed; no joint of the body streamed goes into the wall."""
+    from avatar_motor.body.motion_state import joints_of
+    from avatar_motor.cli import DEFAULT_MODEL
+    from avatar_motor.model.checkpoint import load_checkpoint
+    from avatar_motor.physics.solver import COLLISION_RADIUS
+
+    world = World(load_checkpoint(DEFAULT_MODEL), RuntimeConfig(), seed=0)
+    with studio_page(world, "window.studio && window.studio.frame > 20 && window.studio.joints(0)") as page:
+        page.keyboard.down("KeyW")
+        try:
+            deadline = time.time() + 10
+            while world.crowd.goal_velocity(0) is None and time.time() < deadline:
+                time.sleep(0.05)
+            v = world.crowd.goal_velocity(0)
+            assert v is not None, "holding W set no goal"
+            d = v[[0, 2]].double() / v[[0, 2]].double().norm()
+            with world.lock:
+                p0 = joints_of(world.crowd.state(0).double())[0, [0, 2]]
+            centre = p0 + 2.0 * d
+            yaw = float(torch.rad2deg(torch.atan2(d[0], d[1])))  # the wall's width across the way
+            world.apply({"type": "obstacle", "centre": centre.tolist(), "size": [3.0, 1.5, 0.1], "yaw": yaw})
+            (box,) = world.crowd.environment.boxes
+            deepest, past, end, shot = 0.0, -9.0, time.time() + 15, False
+            while time.time() < end and past < 1.0:
+                with world.lock:
+                    J = joints_of(world.crowd.state(0).double())
+                q, e, _, _ = box.local(J, COLLISION_RADIUS)
+                deepest = max(deepest, float((e - q.abs()).amin(-1).clamp(min=0).max()))
+                past = float((J[0, [0, 2]] - centre) @ d)  # along the way W points, from the wall
+                if not shot and past > 0.0:
+                    page.screenshot(path=str(artifacts / "studio-wasd-wall.png"))
+                    shot = True
+                time.sleep(0.02)
+        finally:
+            page.keyboard.up("KeyW")
+        assert past > 1.0, f"held at the wall: the pelvis got only {past:.2f} m past it"
+        assert deepest < 0.005, f"a joint went {deepest * 100:.1f} cm into the wall"
+
+
 @pytest.mark.slow  # about a minute: the shipped family's reaching avatar and the page in software GL
 @needs_chromium
 def test_the_magnet_behind_a_wall_in_the_studio(artifacts):
