@@ -491,10 +491,9 @@ def way_ahead(start, direction, env: Environment, clearance: float, ahead: float
     c, A, h = footprints(env, margin)
     if not bool(_crossing(s[None], (s + ahead * d)[None], c, A, h).any()):
         return None
-    c, A, h = footprints(env, clearance)
     t = torch.arange(ahead, beyond + 1e-9, 0.1, dtype=torch.float64)
     p = s[None] + t[:, None] * d[None]
-    clear = ~(_in_footprint_frames(p, c, A).abs() < h[None]).all(-1).any(-1)
+    clear = ~env.over_footprint(p, clearance)
     return p[int(clear.nonzero()[0])] if bool(clear.any()) else None
 
 
